@@ -1,0 +1,1 @@
+"""Input and output: scan loaders, pose files, problem files, atomic writers."""

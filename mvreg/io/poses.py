@@ -1,0 +1,107 @@
+"""Pose files: ``mvreg.poses/1`` JSON, TUM and KITTI text. Full float64 precision.
+
+Every pose maps local (scan / patch) coordinates to world: ``T_world_local``.
+
+``mvreg.poses/1``::
+
+    {"format": "mvreg.poses/1",
+     "poses": {"scan_000.ply": [[r00, r01, r02, tx], ..., [0, 0, 0, 1]], ...},
+     ...any extra keys (units, solver stats, certificate)...}
+
+TUM: one line per pose ``timestamp tx ty tz qx qy qz qw`` (timestamp = index unless
+given). KITTI: one line per pose, the first 3 rows of the 4x4 matrix, row-major.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+from pathlib import Path
+
+import numpy as np
+from scipy.spatial.transform import Rotation
+
+from mvreg.errors import InputError
+from mvreg.io.atomic import atomic_write_json, atomic_write_text
+
+POSES_FORMAT = "mvreg.poses/1"
+
+
+def poses_to_json_dict(T_world_local: dict[str, np.ndarray], **extra) -> dict:
+    """Build the ``mvreg.poses/1`` dictionary (poses as nested lists)."""
+    out = {"format": POSES_FORMAT, "poses": {}}
+    for name, t in T_world_local.items():
+        out["poses"][str(name)] = np.asarray(t, dtype=np.float64).tolist()
+    out.update(extra)
+    return out
+
+
+def write_poses_json(path: str | os.PathLike, T_world_local: dict[str, np.ndarray], **extra):
+    """Write ``mvreg.poses/1`` atomically."""
+    atomic_write_json(path, poses_to_json_dict(T_world_local, **extra))
+
+
+def read_poses_json(path: str | os.PathLike) -> dict[str, np.ndarray]:
+    """Read the poses of an ``mvreg.poses/1`` file as {name: (d+1, d+1) float64}."""
+    path = Path(path)
+    try:
+        data = json.loads(path.read_text())
+    except FileNotFoundError:
+        raise InputError(f"{path}: no such file") from None
+    except (OSError, UnicodeDecodeError, json.JSONDecodeError) as e:
+        raise InputError(f"{path}: not a readable JSON file ({e})") from None
+    if not isinstance(data, dict) or data.get("format") != POSES_FORMAT:
+        raise InputError(f"{path}: not an {POSES_FORMAT} file (missing 'format')")
+    poses = {}
+    for name, m in data.get("poses", {}).items():
+        a = np.asarray(m, dtype=np.float64)
+        if a.ndim != 2 or a.shape[0] != a.shape[1] or a.shape[0] not in (3, 4):
+            raise InputError(f"{path}: pose '{name}' is not a 3x3 or 4x4 matrix")
+        if not np.all(np.isfinite(a)):
+            raise InputError(f"{path}: pose '{name}' has NaN or inf")
+        poses[name] = a
+    if not poses:
+        raise InputError(f"{path}: no poses")
+    return poses
+
+
+def _fmt(x: float) -> str:
+    return repr(float(x))
+
+
+def write_poses_tum(path, T_world_local: list[np.ndarray], timestamps=None) -> None:
+    """TUM trajectory format (3D poses only)."""
+    lines = []
+    for i, t in enumerate(T_world_local):
+        ts = float(i if timestamps is None else timestamps[i])
+        q = Rotation.from_matrix(t[:3, :3]).as_quat()  # x, y, z, w
+        vals = [ts, *t[:3, 3], *q]
+        lines.append(" ".join(_fmt(v) for v in vals))
+    atomic_write_text(path, "\n".join(lines) + "\n")
+
+
+def read_poses_tum(path) -> tuple[np.ndarray, list[np.ndarray]]:
+    rows = np.loadtxt(path, ndmin=2)
+    poses = []
+    for r in rows:
+        t = np.eye(4)
+        t[:3, :3] = Rotation.from_quat(r[4:8]).as_matrix()
+        t[:3, 3] = r[1:4]
+        poses.append(t)
+    return rows[:, 0], poses
+
+
+def write_poses_kitti(path, T_world_local: list[np.ndarray]) -> None:
+    """KITTI odometry format: 12 numbers per line (3x4, row-major)."""
+    lines = [" ".join(_fmt(v) for v in np.asarray(t)[:3, :4].ravel()) for t in T_world_local]
+    atomic_write_text(path, "\n".join(lines) + "\n")
+
+
+def read_poses_kitti(path) -> list[np.ndarray]:
+    rows = np.loadtxt(path, ndmin=2)
+    out = []
+    for r in rows:
+        t = np.eye(4)
+        t[:3, :4] = r.reshape(3, 4)
+        out.append(t)
+    return out

@@ -1,0 +1,58 @@
+"""Gauge-free error metrics against ground truth.
+
+Poses are only defined up to one global rigid motion (the gauge), so estimates are first
+aligned to the truth by the best global rotation (and translation), then compared.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from mvreg.geometry import project_to_orthogonal, rotation_angle_deg
+
+
+def best_global_rotation(R_est: np.ndarray, R_true: np.ndarray) -> np.ndarray:
+    """Q in SO(d) minimizing sum ||Q R_est_i - R_true_i||_F^2. Inputs (M, d, d)."""
+    return project_to_orthogonal(np.einsum("mij,mkj->ik", R_true, R_est)[None])[0]
+
+
+def rotation_errors_deg(R_est: np.ndarray, R_true: np.ndarray) -> np.ndarray:
+    """(M,) angle (degrees) between Q R_est_i and R_true_i after the best global Q."""
+    q = best_global_rotation(R_est, R_true)
+    return rotation_angle_deg(np.einsum("mji,jk,mkl->mil", R_true, q, R_est))
+
+
+def translation_errors(
+    R_est: np.ndarray, t_est: np.ndarray, R_true: np.ndarray, t_true: np.ndarray
+) -> np.ndarray:
+    """(M,) ||Q t_est_i + c - t_true_i|| after the best global rotation Q and shift c."""
+    q = best_global_rotation(R_est, R_true)
+    moved = t_est @ q.T
+    c = np.mean(t_true - moved, axis=0)
+    return np.linalg.norm(moved + c - t_true, axis=1)
+
+
+@dataclass
+class PoseErrors:
+    """Per-patch errors after gauge alignment (rotation in degrees, translation in units)."""
+
+    rotation_deg: np.ndarray
+    translation: np.ndarray
+
+    def summary(self) -> dict:
+        return {
+            "rotation_deg_median": float(np.median(self.rotation_deg)),
+            "rotation_deg_max": float(np.max(self.rotation_deg)),
+            "translation_median": float(np.median(self.translation)),
+            "translation_max": float(np.max(self.translation)),
+        }
+
+
+def pose_errors(T_est: np.ndarray, T_true: np.ndarray) -> PoseErrors:
+    """Errors of (M, d+1, d+1) world_from_local estimates against the truth."""
+    d = T_est.shape[-1] - 1
+    r_e, t_e = T_est[:, :d, :d], T_est[:, :d, d]
+    r_t, t_t = T_true[:, :d, :d], T_true[:, :d, d]
+    return PoseErrors(rotation_errors_deg(r_e, r_t), translation_errors(r_e, t_e, r_t, t_t))

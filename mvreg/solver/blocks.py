@@ -1,0 +1,55 @@
+"""Block helpers. X = O^T is (n, d) with n = M d; block i is X_i = R_i^T (d x d)."""
+
+from __future__ import annotations
+
+import numpy as np
+
+from mvreg.geometry import project_to_orthogonal
+
+
+def x_from_rotations(R: np.ndarray) -> np.ndarray:
+    """(M, d, d) R_world_patch -> X = O^T (n, d) with X_i = R_i^T."""
+    m, d, _ = R.shape
+    return R.transpose(0, 2, 1).reshape(m * d, d)
+
+
+def rotations_from_x(X: np.ndarray, d: int) -> np.ndarray:
+    """(n, d) X -> (M, d, d) blocks R_i = X_i^T (no projection)."""
+    return X.reshape(-1, d, d).transpose(0, 2, 1)
+
+
+def round_to_rotations(X: np.ndarray, d: int, allow_reflections: bool = False) -> np.ndarray:
+    """Round an (n, d) factor (e.g. sqrt(M) U, or O^T) to rotations (M, d, d).
+
+    A global reflection is a gauge: when most blocks have det < 0 the whole factor is
+    reflected first, so that projecting onto SO(d) changes as few blocks as possible.
+    """
+    blocks = X.reshape(-1, d, d)
+    if not allow_reflections:
+        det = np.linalg.det(blocks)
+        if np.sum(det < 0) > np.sum(det > 0):
+            X = X.copy()
+            X[:, -1] *= -1.0
+            blocks = X.reshape(-1, d, d)
+    xi = project_to_orthogonal(blocks, allow_reflections=allow_reflections)  # X_i
+    return xi.transpose(0, 2, 1)
+
+
+def sym(a: np.ndarray) -> np.ndarray:
+    return 0.5 * (a + np.swapaxes(a, -1, -2))
+
+
+def skew(a: np.ndarray) -> np.ndarray:
+    return 0.5 * (a - np.swapaxes(a, -1, -2))
+
+
+def diag_blocks_of_gram(U: np.ndarray, s: np.ndarray, d: int) -> np.ndarray:
+    """Diagonal d x d blocks of U diag(s) U^T for U (n, r): returns (M, d, d)."""
+    ub = U.reshape(-1, d, U.shape[1])
+    return np.einsum("mar,r,mbr->mab", ub, s, ub)
+
+
+def block_apply(blocks: np.ndarray, V: np.ndarray) -> np.ndarray:
+    """Apply a block-diagonal matrix given as (M, d, d) blocks to V (n, r)."""
+    m, d, _ = blocks.shape
+    return np.einsum("mab,mbr->mar", blocks, V.reshape(m, d, -1)).reshape(m * d, -1)

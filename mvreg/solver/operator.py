@@ -1,0 +1,283 @@
+"""The data matrix C of O-REG (DESIGN.md section 2), dense or matrix-free.
+
+Eliminating node positions z and translations t from REG leaves
+``min Tr(C O^T O)`` with ``C = C0 - B S^+ B^T`` (Md x Md), where (with
+``n_k = sum_i w_ki`` and ordered pairs (l, l') of observations of one node):
+
+    C0[i,j] = delta_ij sum_{l in i} w_l (1 - w_l/n_k) x_l x_l^T - sum_pairs w_l w_l'/n_k x_l x_l'^T
+    B[i,j]  = delta_ij sum_{l in i} w_l (1 - w_l/n_k) x_l       - sum_pairs w_l w_l'/n_k x_l
+    S[i,j]  = delta_ij sum_{l in i} w_l (1 - w_l/n_k)           - sum_pairs w_l w_l'/n_k
+
+S (M x M) is the weighted Laplacian of the patch graph; C0 and B are sparse with the
+block pattern of the patch graph. Nothing of size (N+M)^2 is ever formed.
+
+Data are centred per patch and scaled by one global factor first, so that rho and
+tolerances do not depend on units; translations and nodes are mapped back.
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass
+
+import numpy as np
+import scipy.sparse as sp
+import scipy.sparse.linalg as spla
+
+from mvreg.solver.problem import PatchProblem
+
+# Above this many patches the Laplacian is solved by preconditioned CG instead of a
+# sparse LU (LU fill-in grows superlinearly on random overlap graphs).
+DIRECT_LAPLACIAN_MAX_PATCHES = 20000
+
+
+class LaplacianSolver:
+    """Solves S x = b for the patch-graph Laplacian S (gauge: x_0 = 0, then mean-free).
+
+    Small graphs: sparse LU of S with patch 0 grounded. Large graphs: CG with an
+    algebraic-multigrid (smoothed aggregation) preconditioner, which stays linear in M,
+    warm-started per right-hand-side block when the caller passes ``x0``.
+    """
+
+    def __init__(self, S: sp.csr_matrix, method: str = "auto", rtol: float = 1e-12):
+        self.m = S.shape[0]
+        self.rtol = rtol
+        self.S = S.tocsr()
+        self.red = self.S[1:, 1:].tocsc()
+        if method == "auto":
+            method = "direct" if self.m <= DIRECT_LAPLACIAN_MAX_PATCHES else "amg-cg"
+        self.method = method
+        self.cg_iterations = 0
+        if self.m == 1:
+            return
+        if method == "direct":
+            self._lu = spla.splu(self.red, permc_spec="MMD_AT_PLUS_A")
+        elif method == "amg-cg":
+            import pyamg
+
+            self._ml = pyamg.smoothed_aggregation_solver(self.red.tocsr(), symmetry="symmetric")
+            self._prec = self._ml.aspreconditioner(cycle="V")
+        else:
+            raise ValueError(f"unknown Laplacian method {method!r}")
+
+    def solve(self, b: np.ndarray) -> np.ndarray:
+        """b: (M,) or (M, r) with columns summing to ~0. Returns x with the same shape."""
+        squeeze = b.ndim == 1
+        b2 = b[:, None] if squeeze else b
+        x = np.zeros_like(b2)
+        if self.m > 1:
+            if self.method == "direct":
+                x[1:] = self._lu.solve(np.ascontiguousarray(b2[1:]))
+            else:
+                for c in range(b2.shape[1]):
+                    rhs = b2[1:, c]
+                    nb = np.linalg.norm(rhs)
+                    if nb == 0:
+                        continue
+                    sol, _ = spla.cg(
+                        self.red, rhs, rtol=self.rtol, atol=0.0, M=self._prec, maxiter=500
+                    )
+                    x[1:, c] = sol
+        x -= x.mean(axis=0, keepdims=True)
+        return x[:, 0] if squeeze else x
+
+
+@dataclass
+class Normalization:
+    """Local coords were mapped as x' = (x - centroid[patch]) / scale."""
+
+    centroids: np.ndarray  # (M, d)
+    scale: float
+
+
+class RegOperator:
+    """C = C0 - B S^+ B^T for a PatchProblem, applied matrix-free or formed densely.
+
+    Attributes:
+        d, M: dimension and number of patches; n = M d.
+        C0: (n, n) csr, B: (n, M) csr, S: (M, M) csr (normalized data).
+        norm: the Normalization applied to the data.
+        timings: seconds spent building (dict).
+    """
+
+    def __init__(self, problem: PatchProblem, laplacian: str = "auto"):
+        t0 = time.perf_counter()
+        self.problem = problem
+        self.d, self.M = problem.d, problem.num_patches
+        self.n = self.d * self.M
+        self.norm = _normalization(problem)
+        self.C0, self.B, self.S = _assemble(problem, self.norm)
+        t1 = time.perf_counter()
+        self.lap = LaplacianSolver(self.S, laplacian)
+        self.num_matvecs = 0
+        self._dense = None
+        self.timings = {"assemble": t1 - t0, "laplacian_setup": time.perf_counter() - t1}
+
+    # ------------------------------------------------------------------ products
+    def matvec(self, v: np.ndarray) -> np.ndarray:
+        """C v for v of shape (n,) or (n, r)."""
+        if self._dense is not None:
+            return self._dense @ v
+        self.num_matvecs += 1 if v.ndim == 1 else v.shape[1]
+        bt = self.B.T @ v
+        return self.C0 @ v - self.B @ self.lap.solve(bt)
+
+    def as_linear_operator(self) -> spla.LinearOperator:
+        return spla.LinearOperator(
+            (self.n, self.n), matvec=self.matvec, matmat=self.matvec, dtype=np.float64
+        )
+
+    def dense(self) -> np.ndarray:
+        """The dense (n, n) C. Costs O(n^2) memory: for moderate M only."""
+        if self._dense is None:
+            bt = self.B.T.toarray()  # (M, n)
+            x = self.lap.solve(bt)
+            c = self.C0.toarray() - self.B @ x
+            self._dense = 0.5 * (c + c.T)
+        return self._dense
+
+    def objective(self, R: np.ndarray) -> float:
+        """Tr(C O^T O) for rotations R (M, d, d), O = [R_1 .. R_M]; normalized units."""
+        o_t = R.transpose(0, 2, 1).reshape(self.n, self.d)  # O^T (n, d)
+        return float(np.sum(o_t * self.matvec(o_t)))
+
+    # ------------------------------------------------------------------ translations
+    def translations(self, R: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Optimal translations (M, d) and node positions (N, d) for rotations R.
+
+        In the problem's own units and frame, before any gauge choice.
+        """
+        d, m = self.d, self.M
+        o = R.transpose(1, 0, 2).reshape(d, m * d)  # O = [R_1 .. R_M], (d, n)
+        ob = (self.B.T @ o.T).T  # (d, M) = O B
+        t_norm = -self.lap.solve(ob.T).T  # (d, M): T S = -O B
+        # Undo normalization: t_i = s t'_i - R_i c_i.
+        s, c = self.norm.scale, self.norm.centroids
+        t = s * t_norm.T - np.einsum("mij,mj->mi", R, c)
+        return t, self.node_positions(R, t)
+
+    def node_positions(self, R: np.ndarray, t: np.ndarray) -> np.ndarray:
+        """z_k = weighted mean of R_i x_ki + t_i over the patches that see node k."""
+        p = self.problem
+        y = np.einsum("kij,kj->ki", R[p.patch], p.coords) + t[p.patch]
+        w = np.where(p.weight > 0, p.weight, 0.0)
+        nk = np.bincount(p.node_index, weights=w, minlength=p.num_nodes)
+        z = np.stack(
+            [
+                np.bincount(p.node_index, weights=w * y[:, a], minlength=p.num_nodes)
+                for a in range(p.d)
+            ],
+            1,
+        )
+        # Nodes seen only with zero weight: plain average, so they still get a position.
+        zero = nk <= 0
+        if np.any(zero):
+            cnt = np.bincount(p.node_index, minlength=p.num_nodes)
+            zu = np.stack(
+                [
+                    np.bincount(p.node_index, weights=y[:, a], minlength=p.num_nodes)
+                    for a in range(p.d)
+                ],
+                1,
+            )
+            z[zero] = zu[zero] / cnt[zero, None]
+            nk = np.where(zero, 1.0, nk)
+        return z / nk[:, None]
+
+    def residual(self, R: np.ndarray, t: np.ndarray, z: np.ndarray | None = None) -> float:
+        """REG cost sum w ||z_k - R_i x_ki - t_i||^2 in the problem's units."""
+        p = self.problem
+        if z is None:
+            z = self.node_positions(R, t)
+        y = np.einsum("kij,kj->ki", R[p.patch], p.coords) + t[p.patch]
+        return float(np.sum(p.weight * np.sum((z[p.node_index] - y) ** 2, axis=1)))
+
+
+def _normalization(problem: PatchProblem) -> Normalization:
+    p, x, w, m, d = problem.patch, problem.coords, problem.weight, problem.num_patches, problem.d
+    ww = np.where(w > 0, w, 0.0)
+    sw = np.bincount(p, weights=ww, minlength=m)
+    cnt = np.bincount(p, minlength=m)
+    cen = np.empty((m, d))
+    for a in range(d):
+        num = np.bincount(p, weights=ww * x[:, a], minlength=m)
+        plain = np.bincount(p, weights=x[:, a], minlength=m) / cnt
+        cen[:, a] = np.where(sw > 0, num / np.maximum(sw, 1e-300), plain)
+    xc = x - cen[p]
+    tot = ww.sum()
+    scale = float(np.sqrt(np.sum(ww * np.sum(xc**2, axis=1)) / tot)) if tot > 0 else 1.0
+    if not np.isfinite(scale) or scale <= 0:
+        scale = 1.0
+    return Normalization(centroids=cen, scale=scale)
+
+
+def _observation_pairs(node_sorted: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """All ordered pairs (a, b), a != b, of positions in a node-sorted array sharing a node."""
+    k = node_sorted.shape[0]
+    starts = np.flatnonzero(np.r_[True, node_sorted[1:] != node_sorted[:-1]])
+    sizes = np.diff(np.r_[starts, k])
+    group_start = np.repeat(starts, sizes)
+    r = np.repeat(sizes, sizes)
+    pos = np.arange(k) - group_start
+    c = r - 1
+    a = np.repeat(np.arange(k), c)
+    within = np.arange(int(c.sum())) - np.repeat(np.cumsum(c) - c, c)
+    b = group_start[a] + within + (within >= pos[a])
+    return a, b
+
+
+def _assemble(problem: PatchProblem, norm: Normalization):
+    d, m = problem.d, problem.num_patches
+    mask = problem.shared_mask()  # other observations contribute exactly zero
+    p = problem.patch[mask]
+    k = problem.node_index[mask]
+    w = problem.weight[mask]
+    x = (problem.coords[mask] - norm.centroids[p]) / norm.scale
+    order = np.argsort(k, kind="stable")
+    p, k, w, x = p[order], k[order], w[order], x[order]
+    nk = np.bincount(k, weights=w, minlength=problem.num_nodes)
+    # Diagonal terms, one per observation.
+    wd = w * (1.0 - w / nk[k])
+    # Off-diagonal terms, one per ordered pair of observations of one node.
+    a, b = _observation_pairs(k)
+    wp = w[a] * w[b] / nk[k[a]]
+    pi, pj = p[a], p[b]
+    # Aggregate pair terms per (i, j) block.
+    key = pi * m + pj
+    ukey, inv = np.unique(key, return_inverse=True)
+    bi, bj = ukey // m, ukey % m
+    nb = ukey.shape[0]
+
+    def agg(values):
+        return np.bincount(inv, weights=values, minlength=nb)
+
+    def agg_diag(values):
+        return np.bincount(p, weights=values, minlength=m)
+
+    # S
+    s_off = -agg(wp)
+    s_diag = agg_diag(wd)
+    S = sp.csr_matrix(
+        (np.r_[s_diag, s_off], (np.r_[np.arange(m), bi], np.r_[np.arange(m), bj])), shape=(m, m)
+    )
+    # B (n x M): rows i*d+r, column j
+    rows, cols, vals = [], [], []
+    for r in range(d):
+        rows += [np.arange(m) * d + r, bi * d + r]
+        cols += [np.arange(m), bj]
+        vals += [agg_diag(wd * x[:, r]), -agg(wp * x[a, r])]
+    B = sp.csr_matrix(
+        (np.concatenate(vals), (np.concatenate(rows), np.concatenate(cols))), shape=(m * d, m)
+    )
+    # C0 (n x n): block (i, j) entry (r, c)
+    rows, cols, vals = [], [], []
+    for r in range(d):
+        for c in range(d):
+            rows += [np.arange(m) * d + r, bi * d + r]
+            cols += [np.arange(m) * d + c, bj * d + c]
+            vals += [agg_diag(wd * x[:, r] * x[:, c]), -agg(wp * x[a, r] * x[b, c])]
+    C0 = sp.csr_matrix(
+        (np.concatenate(vals), (np.concatenate(rows), np.concatenate(cols))), shape=(m * d, m * d)
+    )
+    C0 = (0.5 * (C0 + C0.T)).tocsr()
+    return C0, B, S

@@ -60,7 +60,7 @@ def polish(
     R: np.ndarray,
     lam_max: float,
     allow_reflections: bool = False,
-    kkt_tol: float = 1e-11,
+    kkt_tol: float = 1e-14,
     max_newton: int = 25,
     max_cg: int = 500,
     precondition: bool = True,
@@ -69,23 +69,28 @@ def polish(
     d, n = op.d, op.n
     X = x_from_rotations(R)
     CX = op.matvec(X)
-    prec = None
-    if precondition and op.M > 1 and direct_feasible(op):
-        prec = NewtonSystem(op, X, CX).step
+    use_direct = precondition and op.M > 1 and direct_feasible(op)
+    prec = NewtonSystem(op, X, CX).step if use_direct else None
+    cg_last = 0
     f = float(np.sum(X * CX))
     scale = lam_max * np.sqrt(n)
     cg_total = 0
     it = 0
     prev = np.inf
+    slow = 0  # consecutive Newton steps that did not halve the gradient
     for it in range(max_newton + 1):
         xb = X.reshape(-1, d, d)
         _, g = multipliers(X, CX, d)
         gnorm = float(np.linalg.norm(g))
-        # Stop at tolerance, or when Newton no longer halves the gradient: the floor set
-        # by rounding errors in C X has been reached.
-        if gnorm <= kkt_tol * scale or it == max_newton or gnorm > 0.5 * prev:
+        # Stop at tolerance, or when Newton repeatedly fails to halve the gradient: the
+        # floor set by rounding errors in C X has been reached.
+        slow = slow + 1 if gnorm > 0.5 * prev else 0
+        if gnorm <= kkt_tol * scale or it == max_newton or slow >= 3:
             break
         prev = gnorm
+        if use_direct and cg_last > 20:
+            # The factorization from an earlier point no longer preconditions well: refresh.
+            prec = NewtonSystem(op, X, CX).step
         mi = sym(np.einsum("mba,mbc->mac", xb, CX.reshape(-1, d, d)))
 
         def hess(v, xb=xb, mi=mi):
@@ -100,9 +105,11 @@ def polish(
         p = z.copy()
         rz = float(np.sum(r * z))
         stop = float(np.sum(r * r)) * min(0.01, gnorm / scale) ** 2
+        cg_last = 0
         for _ in range(max_cg):
             hp = hess(p)
             cg_total += 1
+            cg_last += 1
             php = float(np.sum(p * hp))
             if php <= 1e-14 * lam_max * float(np.sum(p * p)):
                 if not np.any(xi):
@@ -115,6 +122,8 @@ def polish(
                 break
             z = _precondition(prec, xb, r)
             rz_new = float(np.sum(r * z))
+            if rz_new <= 0.0 or rz <= 0.0:
+                break  # exact solve, or an indefinite preconditioner: stop here
             p = z + (rz_new / rz) * p
             rz = rz_new
         # Backtracking line search with the polar retraction.
@@ -127,7 +136,11 @@ def polish(
             ).reshape(-1, d)
             cxn = op.matvec(xn)
             fn = float(np.sum(xn * cxn))
-            if fn <= f + 1e-4 * step * min(slope, 0.0) or fn <= f - 1e-16 * abs(f):
+            # Armijo decrease; near the optimum the decrease of f drowns in rounding
+            # errors, so a step that halves the gradient is accepted too (Newton's regime).
+            if fn <= f + 1e-4 * step * min(slope, 0.0) or (
+                np.linalg.norm(multipliers(xn, cxn, d)[1]) < 0.5 * gnorm
+            ):
                 accepted = True
                 break
             step *= 0.5

@@ -26,9 +26,10 @@ from mvreg.solver.reg_admm import (
     theorem4_rho,
 )
 from mvreg.solver.result import SolveResult
+from mvreg.solver.solvers import GENERIC_SOLVERS, SolverContext
 from mvreg.solver.spectral import spectral_rotations, spectrum
 
-SOLVERS = ("reg-admm",)
+SOLVERS = ("reg-admm", *GENERIC_SOLVERS)
 # Dense (exact eigendecomposition per iteration) up to this M d; matrix-free above.
 DENSE_MAX_N = 900
 # lambda_{d+1}(C) / lambda_max(C) below this: some rotation is not determined.
@@ -58,7 +59,7 @@ def solve(
     gap_tol: float = DEFAULT_GAP_TOL,
     allow_reflections: bool = False,
     init: np.ndarray | str = "spectral",
-    polish_steps: bool = True,
+    polish_steps: bool | None = None,
     certify_result: bool = True,
     gauge: str = "first",
     seed: int = 0,
@@ -80,6 +81,8 @@ def solve(
         init: "spectral" or rotations (M, d, d) R_world_patch to start from.
         polish_steps: Newton-polish rounded iterates at checkpoints (stop when certified);
             False runs plain eq. (7) to its residual tolerance (paper experiments).
+            Default: True for reg-admm, False for the other solvers (their own output is
+            certified as it is).
         certify_result: compute the certificate (True in every user-facing path).
         gauge: "first" (patch 0 = world frame) or "none".
         seed: seeds the random starts of the iterative eigensolvers.
@@ -128,6 +131,23 @@ def solve(
 
     timings["init"] = time.perf_counter() - t0
 
+    if solver != "reg-admm":
+        return _solve_generic(
+            problem,
+            op,
+            solver,
+            R0,
+            spec,
+            dense,
+            timings,
+            t_start,
+            SolverContext(dense, max_iter, tol, allow_reflections, spec, seed, callback, rho),
+            polish_steps=polish_steps if polish_steps is not None else False,
+            certify_result=certify_result,
+            gap_tol=gap_tol,
+            gauge=gauge,
+        )
+    polish_steps = True if polish_steps is None else polish_steps
     rho0 = theorem4_rho(lam_d1, m, d) if rho == "auto" else float(rho)
     state = state_from_rotations(R0, rho=rho0)
     best = {"R": None, "f": np.inf, "cert": None, "polish": None, "at": None}
@@ -187,16 +207,7 @@ def solve(
     timings["polish"] = t_polish[0]
     timings["certificate"] = t_cert[0]
 
-    R = best["R"]
-    t0 = time.perf_counter()
-    t, z = op.translations(R)
-    if gauge == "first":
-        r0, t0v = R[0].copy(), t[0].copy()
-        R = np.einsum("ba,mbc->mac", r0, R)
-        t = (t - t0v) @ r0
-        z = (z - t0v) @ r0
-    timings["translations"] = time.perf_counter() - t0
-    timings["total"] = time.perf_counter() - t_start
+    R, t, z = _finish(op, best["R"], gauge, timings, t_start)
     cert = best["cert"]
     objective = op.residual(R, t, z)
     pst = best["polish"]
@@ -234,4 +245,73 @@ def solve(
             "C_products": op.num_matvecs,
             "laplacian": op.lap.method,
         },
+    )
+
+
+def _finish(op, R, gauge, timings, t_start):
+    """Closed-form translations and nodes for R, then the gauge (patch 0 = world)."""
+    t0 = time.perf_counter()
+    t, z = op.translations(R)
+    if gauge == "first":
+        r0, t0v = R[0].copy(), t[0].copy()
+        R = np.einsum("ba,mbc->mac", r0, R)
+        t = (t - t0v) @ r0
+        z = (z - t0v) @ r0
+    timings["translations"] = time.perf_counter() - t0
+    timings["total"] = time.perf_counter() - t_start
+    return R, t, z
+
+
+def _solve_generic(
+    problem,
+    op,
+    solver,
+    R0,
+    spec,
+    dense,
+    timings,
+    t_start,
+    ctx,
+    *,
+    polish_steps,
+    certify_result,
+    gap_tol,
+    gauge,
+) -> SolveResult:
+    t0 = time.perf_counter()
+    run = GENERIC_SOLVERS[solver](op, R0, ctx)
+    timings["iterations"] = time.perf_counter() - t0
+    R = run.rotations
+    stats = dict(run.stats)
+    if polish_steps:
+        t0 = time.perf_counter()
+        R, pst = polish(op, R, spec.largest, ctx.allow_reflections)
+        timings["polish"] = time.perf_counter() - t0
+        stats.update(newton_steps=pst.newton_steps, newton_cg_steps=pst.cg_steps)
+    t0 = time.perf_counter()
+    cert = certify(op, R, spec.largest, dense, gap_tol, ctx.seed) if certify_result else None
+    timings["certificate"] = time.perf_counter() - t0
+    R, t, z = _finish(op, R, gauge, timings, t_start)
+    lam_d1 = float(spec.smallest[op.d]) if op.M > 1 else spec.largest
+    stats.update(
+        lambda_d_plus_1=lam_d1,
+        lambda_max=spec.largest,
+        spectral_gap_ratio=lam_d1 / spec.largest,
+        C_products=op.num_matvecs,
+        laplacian=op.lap.method,
+    )
+    return SolveResult(
+        rotations=R,
+        translations=t,
+        nodes=z,
+        patch_names=list(problem.patch_names),
+        objective=op.residual(R, t, z),
+        iterations=run.iterations,
+        converged=bool(run.converged),
+        certificate=cert,
+        solver=solver,
+        method="dense" if dense else "matrix-free",
+        history=[h if isinstance(h, dict) else h.__dict__ for h in run.history],
+        timings=timings,
+        stats=stats,
     )

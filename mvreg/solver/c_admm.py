@@ -1,0 +1,278 @@
+"""C-ADMM: ADMM for the convex relaxation C-SDP (paper 000 Sec. 1.3; Sanyal et al. 2017).
+
+    (C-SDP)   min Tr(C G)  s.t.  G PSD (Md x Md),  G_ii = I_d  (no rank constraint)
+
+Iteration (the same augmented Lagrangian as REG-ADMM, eq. 6; only the G-update differs):
+
+    G <- Pi_PSD(H - (C + Lambda)/rho)       full eigendecomposition, negative eigenvalues
+                                             clipped to 0 (all positive ones kept)
+    H <- G with every diagonal d x d block set to I
+    Lambda <- Lambda + rho (bd(G) - I)       (block diagonal, Prop. 3)
+
+Dense only: one full ``eigh`` of an Md x Md matrix per iteration, O((Md)^3) time and
+O((Md)^2) memory. Size limit: ``M d <= C_ADMM_MAX_N`` (1500); larger problems are refused
+with a ConfigError (one iteration at M d = 1500 already takes ~1 s on one core).
+
+Start: H0 = G0 = O0^T O0 from the initial rotations (spectral by default) and the dual
+Lambda0 = -sym(bd(C G0)) (paper 000 Prop. 2's dual at G0).
+
+rho: "auto" starts from lambda_{d+1}(C) / M (C's scale on the complement of the solution,
+per unit eigenvalue of G) and is then balanced (Boyd et al. 2011, Sec. 3.4.1): doubled when
+the primal residual exceeds 10x the dual one, halved in the opposite case, at most every
+``balance_every`` iterations. A number fixes rho.
+
+Stopping rule: relative primal residual ||bd(G) - I||_F / sqrt(Md) and relative dual
+residual ||H_{k+1} - H_k||_F / ||H_k||_F both <= tol, or max_iter. Every ``gap_every``
+iterations and at the end a duality gap is computed: the feasible point
+G' = D^{-1/2} G D^{-1/2} (D = bd(G)) gives the upper bound Tr(C G'), and the dual
+Lambda gives the lower bound -Tr(Lambda) + Md lambda_min(C + Lambda); the run also stops
+when (upper - lower) <= tol * max(upper, 1e-12 lambda_max Md).
+
+Rank (tightness of the relaxation, paper 000 Fig. 3): the number of eigenvalues of the
+final G' above ``rank_rtol`` (1e-3) times its largest eigenvalue (~M). rank == d means the
+relaxation is tight: G' = O^T O is the global optimum of REG-SDP too. Rounding: the top-d
+eigenvectors of G' scaled by sqrt(eigenvalue), each d x d block projected onto SO(d)/O(d).
+"""
+
+from __future__ import annotations
+
+import math
+import time
+from dataclasses import dataclass, field
+
+import numpy as np
+import scipy.linalg as sla
+
+from mvreg.errors import ConfigError
+from mvreg.solver.blocks import round_to_rotations, sym, x_from_rotations
+
+C_ADMM_MAX_N = 1500
+RANK_RTOL = 1e-3
+
+
+@dataclass
+class CAdmmResult:
+    G: np.ndarray  # feasible (diagonal blocks I) PSD optimum estimate, normalized units
+    eigenvalues: np.ndarray  # of G, descending
+    rank: int
+    rotations: np.ndarray  # rounded (M, d, d)
+    lam: np.ndarray  # dual blocks (M, d, d)
+    iterations: int
+    converged: bool
+    stopped_by: str
+    upper: float  # Tr(C G) at the feasible G (normalized units)
+    lower: float  # dual lower bound (normalized units)
+    rho_final: float
+    history: list = field(default_factory=list)
+
+
+def _bd(a: np.ndarray, m: int, d: int) -> np.ndarray:
+    """Diagonal d x d blocks of a dense (n, n) matrix: (M, d, d)."""
+    idx = np.arange(m)[:, None] * d + np.arange(d)[None, :]
+    return a[idx[:, :, None], idx[:, None, :]]
+
+
+def _set_bd(a: np.ndarray, blocks: np.ndarray, add: bool = False) -> None:
+    m, d, _ = blocks.shape
+    idx = np.arange(m)[:, None] * d + np.arange(d)[None, :]
+    if add:
+        a[idx[:, :, None], idx[:, None, :]] += blocks
+    else:
+        a[idx[:, :, None], idx[:, None, :]] = blocks
+
+
+def check_size(n: int) -> None:
+    if n > C_ADMM_MAX_N:
+        raise ConfigError(
+            f"c-admm is dense (a full eigendecomposition of the Md x Md matrix per "
+            f"iteration) and limited to M d <= {C_ADMM_MAX_N}; this problem has M d = {n}. "
+            "Use reg-admm, gpm or balm for larger problems."
+        )
+
+
+def _feasible(G: np.ndarray, m: int, d: int) -> np.ndarray:
+    """D^{-1/2} G D^{-1/2} with D = bd(G): PSD with identity diagonal blocks."""
+    blocks = sym(_bd(G, m, d))
+    w, v = np.linalg.eigh(blocks)
+    w = np.maximum(w, 1e-12)
+    isq = np.einsum("mab,mb,mcb->mac", v, 1.0 / np.sqrt(w), v)
+    Gb = G.reshape(m, d, m, d)
+    out = np.einsum("iab,ibjc,jdc->iajd", isq, Gb, isq).reshape(m * d, m * d)
+    out = 0.5 * (out + out.T)
+    _set_bd(out, np.broadcast_to(np.eye(d), (m, d, d)).copy())
+    return out
+
+
+def _bounds(C, G, lam, m, d, lam_max):
+    """(upper, lower, G_feasible): primal value at a feasible point and the dual bound."""
+    n = m * d
+    Gf = _feasible(G, m, d)
+    upper = float(np.sum(C * Gf))
+    A = C.copy()
+    _set_bd(A, lam, add=True)
+    lmin = float(sla.eigh(A, eigvals_only=True, subset_by_index=[0, 0])[0])
+    lower = -float(np.trace(lam, axis1=1, axis2=2).sum()) + n * lmin
+    return upper, lower, Gf
+
+
+def c_admm(
+    C: np.ndarray,
+    d: int,
+    R0: np.ndarray,
+    *,
+    rho: str | float = "auto",
+    lam_d1: float | None = None,
+    lam_max: float | None = None,
+    max_iter: int = 2000,
+    tol: float = 1e-6,
+    allow_reflections: bool = False,
+    rank_rtol: float = RANK_RTOL,
+    gap_every: int = 25,
+    balance_every: int = 10,
+    callback=None,
+) -> CAdmmResult:
+    """Run C-ADMM on a dense normalized C (n, n). See the module docstring."""
+    n = C.shape[0]
+    m = n // d
+    check_size(n)
+    if lam_max is None or lam_d1 is None:
+        w = sla.eigh(C, eigvals_only=True)
+        lam_max = float(w[-1]) if lam_max is None else lam_max
+        lam_d1 = float(w[min(d, n - 1)]) if lam_d1 is None else lam_d1
+    eye = np.eye(d)
+    X0 = x_from_rotations(R0)
+    H = X0 @ X0.T
+    lam = -sym(_bd(C @ H, m, d))
+    if rho == "auto":
+        rho_v = max(lam_d1, 1e-9 * lam_max) / m
+        adaptive = True
+    else:
+        rho_v = float(rho)
+        adaptive = False
+    history = []
+    converged = False
+    stopped_by = "max_iter"
+    G = H
+    last_balance = 0
+    upper = lower = math.nan
+    Gf = None
+    k = 0
+    for k in range(1, max_iter + 1):
+        A = H - C / rho_v
+        _set_bd(A, -lam / rho_v, add=True)
+        A = 0.5 * (A + A.T)
+        w, V = sla.eigh(A, overwrite_a=True, check_finite=False)
+        pos = w > 0
+        Vp = V[:, pos]
+        G = (Vp * w[pos]) @ Vp.T
+        gd = _bd(G, m, d)
+        resid = gd - eye
+        H_new = G.copy()
+        _set_bd(H_new, np.broadcast_to(eye, (m, d, d)).copy())
+        pr = float(np.linalg.norm(resid)) / math.sqrt(n)
+        dh = float(np.linalg.norm(H_new - H))
+        dr = dh / max(float(np.linalg.norm(H)), 1e-300)
+        lam = lam + rho_v * resid
+        H = H_new
+        rec = {
+            "iteration": k,
+            "objective": float(np.sum(C * G)),
+            "primal_residual": pr,
+            "dual_residual": dr,
+            "rho": rho_v,
+            "positive_eigenvalues": int(np.sum(w > rank_rtol * max(w[-1], 1e-300))),
+        }
+        if pr <= tol and dr <= tol:
+            history.append(rec)
+            converged, stopped_by = True, "residuals"
+            break
+        if gap_every and k % gap_every == 0:
+            upper, lower, Gf = _bounds(C, G, lam, m, d, lam_max)
+            rec.update(upper=upper, lower=lower)
+            if upper - lower <= tol * max(upper, 1e-12 * lam_max * n):
+                history.append(rec)
+                converged, stopped_by = True, "duality_gap"
+                break
+        history.append(rec)
+        if callback is not None:
+            callback(rec)
+        if adaptive and k - last_balance >= balance_every:
+            # Absolute residuals of Boyd et al.: r = ||G - H||, s = rho ||H_{k+1} - H_k||.
+            r_abs, s_abs = pr * math.sqrt(n), rho_v * dh
+            if r_abs > 10.0 * s_abs:
+                rho_v *= 2.0
+                last_balance = k
+            elif s_abs > 10.0 * r_abs:
+                rho_v /= 2.0
+                last_balance = k
+    upper, lower, Gf = _bounds(C, G, lam, m, d, lam_max)
+    ev, evec = sla.eigh(Gf)
+    ev, evec = ev[::-1], evec[:, ::-1]
+    rank = int(np.sum(ev > rank_rtol * ev[0]))
+    Xd = evec[:, :d] * np.sqrt(np.maximum(ev[:d], 0.0))
+    R = round_to_rotations(Xd, d, allow_reflections)
+    return CAdmmResult(
+        G=Gf,
+        eigenvalues=ev,
+        rank=rank,
+        rotations=R,
+        lam=lam,
+        iterations=k,
+        converged=converged,
+        stopped_by=stopped_by,
+        upper=upper,
+        lower=lower,
+        rho_final=rho_v,
+        history=history,
+    )
+
+
+def run_c_admm(op, R0: np.ndarray, ctx):
+    """Registry entry (GENERIC_SOLVERS["c-admm"]): C-ADMM on op.dense(), rounded rotations."""
+    from mvreg.solver.solvers import GenericRun
+
+    d, n, m = op.d, op.n, op.M
+    check_size(n)  # before forming anything dense
+    t0 = time.perf_counter()
+    C = op.dense()
+    lam_max = float(ctx.spectrum.largest)
+    lam_d1 = float(ctx.spectrum.smallest[min(d, n - 1)])
+    res = c_admm(
+        C,
+        d,
+        R0,
+        rho=ctx.rho,
+        lam_d1=lam_d1,
+        lam_max=lam_max,
+        max_iter=ctx.max_iter,
+        tol=ctx.tol,
+        allow_reflections=ctx.allow_reflections,
+        callback=ctx.callback,
+    )
+    s2 = op.norm.scale**2
+    for rec in res.history:
+        rec["objective"] *= s2
+        for key in ("upper", "lower"):
+            if key in rec:
+                rec[key] *= s2
+    top = res.eigenvalues[: min(n, d + 3)] / m
+    return GenericRun(
+        rotations=res.rotations,
+        iterations=res.iterations,
+        converged=res.converged,
+        history=res.history,
+        stats={
+            "rank": res.rank,
+            "tight": res.rank == d,
+            "rank_rtol": RANK_RTOL,
+            "eigenvalues_over_M": [float(x) for x in top],
+            "sdp_objective": res.upper * s2,
+            "sdp_lower_bound": res.lower * s2,
+            "sdp_relative_gap": (res.upper - res.lower) / max(abs(res.upper), 1e-12 * lam_max * n),
+            "rounded": res.rank > d,
+            "stopped_by": res.stopped_by,
+            "rho_final": res.rho_final,
+            "size_limit_Md": C_ADMM_MAX_N,
+            "c_admm_time_s": time.perf_counter() - t0,
+        },
+    )

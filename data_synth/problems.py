@@ -49,10 +49,15 @@ def overlap_graph(
         i, j = np.triu_indices(m, 1)
         return centres, np.stack([i, j], 1)
     if graph == "geometric":
-        k = max(1, int(round(degree / 2)))
-        _, nn = cKDTree(centres).query(centres, k=k + 1)
-        i = np.repeat(np.arange(m), k)
-        j = nn[:, 1:].ravel()
+        # k nearest neighbours, symmetrized; the smallest k whose mean degree >= degree.
+        kmax = min(m - 1, 2 * degree + 2)
+        _, nn = cKDTree(centres).query(centres, k=kmax + 1)
+        for k in range(1, kmax + 1):
+            i = np.repeat(np.arange(m), k)
+            j = nn[:, 1 : k + 1].ravel()
+            e = np.unique(np.sort(np.stack([i, j], 1), axis=1), axis=0)
+            if 2 * len(e) / m >= degree:
+                break
     elif graph == "random":
         k = max(1, int(round(degree / 2)))
         i = np.repeat(np.arange(m), k)

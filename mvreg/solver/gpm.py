@@ -29,7 +29,6 @@ import time
 
 import numpy as np
 
-from mvreg.geometry import project_to_orthogonal
 from mvreg.solver.blocks import round_to_rotations, x_from_rotations
 
 
@@ -111,6 +110,3 @@ def run_gpm(op, R0: np.ndarray, ctx):
             "gpm_time_s": time.perf_counter() - t0,
         },
     )
-
-
-__all__ = ["run_gpm", "project_to_orthogonal"]

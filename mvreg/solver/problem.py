@@ -286,6 +286,8 @@ def load_problem(path: str | os.PathLike, check_well_posed: bool = True) -> Patc
     path = Path(path)
     if not path.exists():
         raise InputError(f"{path}: no such file")
+    if not zipfile.is_zipfile(path):
+        raise InputError(f"{path}: not an .npz file (not a zip archive)")
     try:
         with np.load(path, allow_pickle=False) as z:
             arrays = {k: z[k] for k in z.files}

@@ -48,7 +48,22 @@ def _checkpoints(max_iter: int) -> set[int]:
     return pts
 
 
-def solve(
+# Multi-threaded OpenBLAS made dense eigensolvers ~10-30x slower on the 2-core machine
+# this was measured on; solve() runs with one BLAS thread (recorded in the result).
+BLAS_THREADS = 1
+
+
+def solve(problem: PatchProblem, *args, **kwargs) -> SolveResult:
+    """Solve REG for a patch problem (see ``_solve`` for the arguments)."""
+    from threadpoolctl import threadpool_limits
+
+    with threadpool_limits(limits=BLAS_THREADS, user_api="blas"):
+        res = _solve(problem, *args, **kwargs)
+    res.stats["blas_threads"] = BLAS_THREADS
+    return res
+
+
+def _solve(
     problem: PatchProblem,
     solver: str = "reg-admm",
     *,

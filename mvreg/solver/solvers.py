@@ -49,3 +49,27 @@ def _spectral(op, R0: np.ndarray, ctx: SolverContext) -> GenericRun:
 
 # name -> run function. Other modules add theirs here (gpm, balm, c-admm).
 GENERIC_SOLVERS: dict[str, Callable[..., GenericRun]] = {"spectral": _spectral}
+
+
+def _gpm(op, R0: np.ndarray, ctx: SolverContext) -> GenericRun:
+    """Generalized power method (paper 001 Algorithm 1): mvreg/solver/gpm.py."""
+    from mvreg.solver.gpm import run_gpm
+
+    return run_gpm(op, R0, ctx)
+
+
+def _balm(op, R0: np.ndarray, ctx: SolverContext) -> GenericRun:
+    """BALM augmented Lagrangian (paper 002 Sec. 3): mvreg/solver/balm.py."""
+    from mvreg.solver.balm import run_balm
+
+    return run_balm(op, R0, ctx)
+
+
+def _c_admm(op, R0: np.ndarray, ctx: SolverContext) -> GenericRun:
+    """ADMM for the convex relaxation C-SDP (paper 000 Sec. 1.3): mvreg/solver/c_admm.py."""
+    from mvreg.solver.c_admm import run_c_admm
+
+    return run_c_admm(op, R0, ctx)
+
+
+GENERIC_SOLVERS.update({"gpm": _gpm, "balm": _balm, "c-admm": _c_admm})

@@ -228,6 +228,229 @@ def make_problem_cmd(
     run_guarded(_run)
 
 
+class RichProgress:
+    """Progress bars for the pipeline stages (the pipeline calls stage/advance/done)."""
+
+    def __init__(self):
+        from rich.progress import (
+            BarColumn,
+            MofNCompleteColumn,
+            Progress,
+            TextColumn,
+            TimeElapsedColumn,
+        )
+
+        self._p = Progress(
+            TextColumn("{task.description:>22}"),
+            BarColumn(),
+            MofNCompleteColumn(),
+            TimeElapsedColumn(),
+            transient=False,
+        )
+        self._task = None
+        self._p.start()
+
+    def stage(self, name: str, total: int | None = None) -> None:
+        if self._task is not None:
+            t = self._p.tasks[self._task]
+            self._p.update(self._task, completed=t.total or 1, total=t.total or 1)
+        self._task = self._p.add_task(name, total=total if total else 1)
+
+    def advance(self, n: int = 1) -> None:
+        if self._task is not None:
+            self._p.advance(self._task, n)
+
+    def done(self) -> None:
+        self.stage("done", 1)
+        self._p.advance(self._task, 1)
+        self._p.stop()
+
+
+def _summary_table(reg) -> None:
+    from rich.console import Console
+    from rich.table import Table
+
+    c = reg.solve.certificate if reg.solve is not None else None
+    t = Table(title="mvreg register", show_header=False)
+    t.add_row("scans", f"{len(reg.scan_names)} ({len(reg.T_world_scan)} registered)")
+    if reg.unregistered:
+        t.add_row("[red]unregistered[/]", ", ".join(reg.unregistered))
+    accepted = [p for p in reg.pairs if p["accepted"]]
+    bad = [p for p in accepted if p["final_weight"] == 0.0]
+    t.add_row(
+        "pairs", f"{len(reg.pairs)} tried, {len(accepted)} accepted, {len(bad)} down-weighted to 0"
+    )
+    if c is not None:
+        t.add_row("certified optimum", "yes" if c.certified else "[red]no[/]")
+    if reg.overlap and reg.overlap["median"] is not None:
+        t.add_row(
+            "overlap residual",
+            f"median {reg.overlap['median']:.4g}, mean {reg.overlap['mean']:.4g} (data units)",
+        )
+    if reg.truth_errors:
+        e = reg.truth_errors
+        t.add_row(
+            "vs ground truth",
+            f"rotation max {e['rotation_deg_max']:.3f} deg, "
+            f"translation max {e['translation_max']:.4g}",
+        )
+    t.add_row("time", f"{reg.timings['total']:.2f} s")
+    Console(stderr=True).print(t)
+
+
+@app.command(epilog="Example:  mvreg register scans/ --out result/ --refine 3 --seed 0")
+def register(
+    folder: Annotated[
+        Path, typer.Argument(help="Folder of scans (PLY, PCD, XYZ, XYZN, XYZRGB, PTS, NPY).")
+    ],
+    out: Annotated[Path, typer.Option("--out", "-o", help="Output folder.")],
+    voxel_size: Annotated[
+        float | None,
+        typer.Option(
+            min=0.0, help="Feature voxel size (data units); default: derived from the data."
+        ),
+    ] = None,
+    solver: Annotated[str | None, typer.Option(help="Global solver (default reg-admm).")] = None,
+    refine: Annotated[
+        int | None, typer.Option(min=0, help="Rounds of multiview ICP refinement (default 3).")
+    ] = None,
+    seed: Annotated[int | None, typer.Option(help="Seed: same seed, same poses.")] = None,
+    config: Annotated[
+        Path | None, typer.Option(help="JSON/YAML config file (stage -> settings).")
+    ] = None,
+    rrd: Annotated[
+        Path | None,
+        typer.Option(help="Where to write the rerun recording (default OUT/recording.rrd)."),
+    ] = None,
+    no_rrd: Annotated[bool, typer.Option("--no-rrd", help="Do not write a recording.")] = False,
+    spawn: Annotated[bool, typer.Option(help="Open the rerun viewer (when installed).")] = False,
+    force: Annotated[bool, typer.Option(help="Overwrite existing results in OUT.")] = False,
+):
+    """Register a folder of raw scans: poses, merged cloud, report and a rerun recording."""
+
+    def _run():
+        code = register_folder(
+            folder,
+            out,
+            voxel_size=voxel_size,
+            solver=solver,
+            refine=refine,
+            seed=seed,
+            config=config,
+            rrd=rrd,
+            no_rrd=no_rrd,
+            spawn=spawn,
+            force=force,
+        )
+        raise typer.Exit(code)
+
+    run_guarded(_run)
+
+
+def register_folder(
+    folder,
+    out,
+    *,
+    voxel_size=None,
+    solver=None,
+    refine=None,
+    seed=None,
+    config=None,
+    rrd=None,
+    no_rrd=False,
+    spawn=False,
+    force=False,
+    progress=True,
+    truth=None,
+):
+    """The body of `mvreg register` (also used by `mvreg demo`). Returns the exit code."""
+    from mvreg.config import load_config
+    from mvreg.errors import ConfigError, OutputExistsError
+    from mvreg.io.writers import prepare_output, residual_heatmap, write_registration
+    from mvreg.pipeline import register as run_register
+    from mvreg.solver import SOLVERS
+    from mvreg.viz import make_recorder
+
+    if voxel_size is not None and voxel_size <= 0:
+        raise ConfigError(f"--voxel-size must be positive, got {voxel_size}")
+    if solver is not None and solver not in SOLVERS:
+        raise ConfigError(f"unknown solver '{solver}' (choose from {', '.join(SOLVERS)})")
+    cfg = load_config(
+        config,
+        **{
+            "preprocess.voxel_size": voxel_size,
+            "solve.solver": solver,
+            "refine.rounds": refine,
+            "seed": seed,
+        },
+    )
+    out = prepare_output(out, force)
+    rrd_path = None if no_rrd else (rrd if rrd is not None else out / "recording.rrd")
+    if rrd is not None and rrd.exists() and not force:
+        raise OutputExistsError(f"{rrd} exists (use --force to overwrite)")
+    rec = make_recorder(rrd_path, spawn=spawn, recording_id=f"mvreg-{cfg.seed}")
+    for w in getattr(rec, "warnings", []):
+        typer.echo(f"mvreg: warning: {w}", err=True)
+    with rec:
+        reg = run_register(
+            folder, cfg, recorder=rec, progress=RichProgress() if progress else None, truth=truth
+        )
+        if reg.T_world_scan:
+            pts, res = residual_heatmap(reg)
+            rec.log_residual_heatmap(pts, res)
+        paths = write_registration(reg, out)
+    _summary_table(reg)
+    typer.echo(
+        f"wrote {', '.join(str(p) for p in paths.values() if p.exists())}"
+        + (f", {rrd_path}" if rrd_path is not None else "")
+    )
+    return 3 if reg.unregistered else 0
+
+
+@app.command("eval", epilog="Example:  mvreg eval result/ --truth scans/ground_truth.json")
+def eval_cmd(
+    out: Annotated[
+        Path, typer.Argument(help="Output folder of `mvreg register` (or a poses.json).")
+    ],
+    truth: Annotated[Path, typer.Option(help="Ground-truth poses (mvreg.poses/1 JSON).")],
+):
+    """Errors of a registration against ground-truth poses (gauge-free)."""
+
+    def _run():
+        import numpy as np
+        from rich.console import Console
+        from rich.table import Table
+
+        from mvreg.errors import InputError
+        from mvreg.io.poses import read_poses_json
+        from mvreg.metrics import pose_errors
+
+        poses_path = out / "poses.json" if out.is_dir() else out
+        est = read_poses_json(poses_path)
+        tru = read_poses_json(truth)
+        common = [n for n in est if n in tru]
+        if len(common) < 2:
+            raise InputError(f"{truth}: fewer than 2 scans in common with {poses_path}")
+        err = pose_errors(np.stack([est[n] for n in common]), np.stack([tru[n] for n in common]))
+        t = Table(title=f"{poses_path} vs {truth}")
+        t.add_column("scan")
+        t.add_column("rotation error (deg)", justify="right")
+        t.add_column("translation error", justify="right")
+        for n, r, tr in zip(common, err.rotation_deg, err.translation, strict=True):
+            t.add_row(n, f"{r:.4f}", f"{tr:.6g}")
+        Console().print(t)
+        s = err.summary()
+        typer.echo(
+            f"rotation median {s['rotation_deg_median']:.4f} max {s['rotation_deg_max']:.4f} deg; "
+            f"translation median {s['translation_median']:.6g} max {s['translation_max']:.6g}"
+        )
+        missing = [n for n in tru if n not in est]
+        if missing:
+            typer.echo(f"not registered: {', '.join(missing)}", err=True)
+
+    run_guarded(_run)
+
+
 def _register_optional_commands():
     """Commands that live beside their stage (data_synth, the register pipeline)."""
     try:

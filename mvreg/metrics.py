@@ -56,3 +56,40 @@ def pose_errors(T_est: np.ndarray, T_true: np.ndarray) -> PoseErrors:
     r_e, t_e = T_est[:, :d, :d], T_est[:, :d, d]
     r_t, t_t = T_true[:, :d, :d], T_true[:, :d, d]
     return PoseErrors(rotation_errors_deg(r_e, r_t), translation_errors(r_e, t_e, r_t, t_t))
+
+
+def overlap_residual(
+    points_world: list[np.ndarray], max_distance: float, max_points: int = 5000, seed: int = 0
+) -> dict:
+    """Nearest-neighbour distances between overlapping scans after alignment.
+
+    For each scan, (up to ``max_points`` of) its points are matched to the nearest point of
+    any other scan; those closer than ``max_distance`` count as overlapping. Returns the
+    median and mean distance over all overlapping points, the overlapping fraction, and
+    per-scan medians. Compare two alignments of the same data with the same arguments.
+    """
+    from scipy.spatial import cKDTree
+
+    rng = np.random.default_rng(seed)
+    trees = [cKDTree(p) for p in points_world]
+    all_d, per_scan = [], []
+    total = 0
+    for i, p in enumerate(points_world):
+        q = p if len(p) <= max_points else p[rng.choice(len(p), max_points, replace=False)]
+        best = np.full(len(q), np.inf)
+        for j, t in enumerate(trees):
+            if j != i:
+                d, _ = t.query(q, distance_upper_bound=max_distance)
+                best = np.minimum(best, d)
+        ok = best < max_distance
+        total += len(q)
+        all_d.append(best[ok])
+        per_scan.append(float(np.median(best[ok])) if np.any(ok) else None)
+    d = np.concatenate(all_d) if all_d else np.zeros(0)
+    return {
+        "median": float(np.median(d)) if d.size else None,
+        "mean": float(np.mean(d)) if d.size else None,
+        "overlap_fraction": float(d.size / max(total, 1)),
+        "max_distance": float(max_distance),
+        "per_scan_median": per_scan,
+    }

@@ -1,0 +1,134 @@
+"""Typed, layered configuration of ``register``: one pydantic model per stage.
+
+Defaults < config file (JSON or YAML, ``--config``) < explicit options. Derived values
+(the voxel size from the data) are filled in by the pipeline and written, resolved, into
+``report.json`` next to the results.
+"""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+from typing import Literal
+
+from pydantic import BaseModel, ConfigDict, Field, ValidationError
+
+from mvreg.errors import ConfigError
+from mvreg.pairwise.align import AlignConfig
+from mvreg.pairwise.candidates import PairsConfig
+from mvreg.pairwise.preprocess import PreprocessConfig
+from mvreg.pairwise.tracks import TracksConfig
+
+
+class SolveConfig(BaseModel):
+    """The global stage (mvreg.solver.solve)."""
+
+    model_config = ConfigDict(extra="forbid")
+
+    solver: str = "reg-admm"
+    method: Literal["auto", "dense", "matrix-free"] = "auto"
+    rho: Literal["auto"] | float = "auto"
+    max_iter: int = Field(500, ge=1)
+    allow_reflections: bool = False
+
+
+class RobustConfig(BaseModel):
+    """Iteratively re-weighted pairs after the global solve (stage 6).
+
+    A pair's residual is the median distance between its corresponding points under the
+    global poses; its weight is w = 1 / (1 + (r / c)^2)^2 (Geman-McClure-like), with
+    c = ``scale_factor`` times the median pair residual (but at least ``min_scale_voxels``
+    feature voxels); weights below ``zero_weight`` become 0 (the pair is listed as bad).
+    """
+
+    model_config = ConfigDict(extra="forbid")
+
+    rounds: int = Field(3, ge=0)
+    scale_factor: float = Field(3.0, gt=0)
+    min_scale_voxels: float = Field(0.25, gt=0)
+    zero_weight: float = Field(0.05, ge=0, lt=1)
+
+
+class RefineConfig(BaseModel):
+    """Multiview ICP rounds (stage 7): correspondences between all overlapping scans
+    recomputed with the current global poses, then a warm-started global re-solve."""
+
+    model_config = ConfigDict(extra="forbid")
+
+    rounds: int = Field(3, ge=0, description="--refine N")
+    distance_voxels: tuple[float, ...] = Field(
+        (1.0, 0.6, 0.4), description="correspondence distance / feature voxel, per round"
+    )
+    min_correspondences: int = Field(30, ge=3)
+
+
+class OutputConfig(BaseModel):
+    model_config = ConfigDict(extra="forbid")
+
+    merged_voxel_size: float | None = Field(
+        None, gt=0, description="voxel of merged.ply (default: the fine voxel)"
+    )
+    rrd: bool = True
+    max_points_per_scan_in_recording: int = Field(50_000, ge=100)
+
+
+class RegisterConfig(BaseModel):
+    """Everything ``register`` does, by stage."""
+
+    model_config = ConfigDict(extra="forbid")
+
+    seed: int = 0
+    min_points: int = Field(100, ge=3, description="a scan needs at least this many points")
+    preprocess: PreprocessConfig = Field(default_factory=PreprocessConfig)
+    pairs: PairsConfig = Field(default_factory=PairsConfig)
+    align: AlignConfig = Field(default_factory=AlignConfig)
+    tracks: TracksConfig = Field(default_factory=TracksConfig)
+    solve: SolveConfig = Field(default_factory=SolveConfig)
+    robust: RobustConfig = Field(default_factory=RobustConfig)
+    refine: RefineConfig = Field(default_factory=RefineConfig)
+    output: OutputConfig = Field(default_factory=OutputConfig)
+
+
+def load_config(path: str | Path | None = None, **overrides) -> RegisterConfig:
+    """Defaults, then the file (JSON, or YAML when PyYAML is installed), then overrides.
+
+    ``overrides`` use dotted keys for nested fields: ``{"solve.solver": "gpm",
+    "preprocess.voxel_size": 0.002, "seed": 3}``; None values are ignored.
+    """
+    data: dict = {}
+    if path is not None:
+        path = Path(path)
+        try:
+            text = path.read_text()
+        except OSError as e:
+            raise ConfigError(f"{path}: cannot read config ({e.strerror})") from None
+        try:
+            if path.suffix.lower() in (".yaml", ".yml"):
+                try:
+                    import yaml
+                except ImportError:
+                    raise ConfigError(f"{path}: YAML needs PyYAML; use JSON instead") from None
+                data = yaml.safe_load(text) or {}
+            else:
+                data = json.loads(text)
+        except (ValueError, TypeError) as e:
+            raise ConfigError(f"{path}: not valid JSON/YAML ({e})") from None
+        if not isinstance(data, dict):
+            raise ConfigError(f"{path}: the config must be a mapping of stage -> settings")
+    for key, value in overrides.items():
+        if value is None:
+            continue
+        node = data
+        parts = key.split(".")
+        for p in parts[:-1]:
+            node = node.setdefault(p, {})
+        node[parts[-1]] = value
+    try:
+        return RegisterConfig.model_validate(data)
+    except ValidationError as e:
+        err = e.errors()[0]
+        where = ".".join(str(x) for x in err["loc"])
+        raise ConfigError(
+            f"{'config' if path is None else path}: {where}: {err['msg']}"
+            + (f" (got {err.get('input')!r})" if "input" in err else "")
+        ) from None

@@ -1,0 +1,144 @@
+"""Output folder of ``register``: poses (JSON, TUM, KITTI), merged cloud, report.
+
+Every file is written atomically (temporary file, then rename): an interrupted run never
+leaves a half-written file. ``prepare_output`` refuses a folder that already holds
+results unless ``force``.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+
+from mvreg.errors import OutputExistsError
+from mvreg.geometry import transform_points
+from mvreg.io.atomic import atomic_path, atomic_write_json
+from mvreg.io.poses import write_poses_json, write_poses_kitti, write_poses_tum
+
+RESULT_FILES = (
+    "poses.json",
+    "poses_tum.txt",
+    "poses_kitti.txt",
+    "merged.ply",
+    "report.json",
+    "recording.rrd",
+)
+
+
+def prepare_output(out: str | Path, force: bool) -> Path:
+    """Create ``out`` (if needed); refuse when it already holds results and not ``force``."""
+    out = Path(out)
+    if out.exists() and not out.is_dir():
+        raise OutputExistsError(f"{out}: exists and is not a folder")
+    existing = [f for f in RESULT_FILES if (out / f).exists()]
+    if existing and not force:
+        raise OutputExistsError(
+            f"{out}: already holds results ({', '.join(existing)}); use --force to overwrite"
+        )
+    out.mkdir(parents=True, exist_ok=True)
+    return out
+
+
+def merged_cloud(reg, voxel_size: float | None = None):
+    """All registered scans in the world frame, colored per scan, voxel-downsampled.
+
+    Returns (points (N, 3), colors (N, 3) float in [0, 1]).
+    """
+    import open3d as o3d
+
+    from mvreg.viz import scan_colors
+
+    idx = {s.name: i for i, s in enumerate(reg.scans)}
+    colors = scan_colors(len(reg.scans)) / 255.0
+    pts, cols = [], []
+    for name, T in reg.T_world_scan.items():
+        p = transform_points(T, reg.scans[idx[name]].points)
+        pts.append(p)
+        cols.append(np.repeat(colors[idx[name]][None], len(p), axis=0))
+    pcd = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(np.concatenate(pts)))
+    pcd.colors = o3d.utility.Vector3dVector(np.concatenate(cols))
+    v = voxel_size or reg.config.output.merged_voxel_size or 0.5 * reg.voxel_size
+    pcd = pcd.voxel_down_sample(v)
+    return np.asarray(pcd.points), np.asarray(pcd.colors)
+
+
+def write_ply(path: str | Path, points: np.ndarray, colors: np.ndarray | None = None) -> None:
+    """Binary little-endian PLY, float64 x y z, uchar colors; written atomically."""
+    n = len(points)
+    props = ["property double x", "property double y", "property double z"]
+    fields = [("x", "<f8"), ("y", "<f8"), ("z", "<f8")]
+    if colors is not None:
+        props += ["property uchar red", "property uchar green", "property uchar blue"]
+        fields += [("r", "u1"), ("g", "u1"), ("b", "u1")]
+    header = "\n".join(
+        [
+            "ply",
+            "format binary_little_endian 1.0",
+            "comment mvreg merged cloud",
+            f"element vertex {n}",
+        ]
+        + props
+        + ["end_header"]
+    )
+    rec = np.empty(n, dtype=fields)
+    rec["x"], rec["y"], rec["z"] = points[:, 0], points[:, 1], points[:, 2]
+    if colors is not None:
+        c = np.clip(np.round(colors * 255), 0, 255).astype(np.uint8)
+        rec["r"], rec["g"], rec["b"] = c[:, 0], c[:, 1], c[:, 2]
+    with atomic_path(path) as tmp:
+        with open(tmp, "wb") as f:
+            f.write((header + "\n").encode("ascii"))
+            f.write(rec.tobytes())
+
+
+def write_registration(reg, out: str | Path) -> dict[str, Path]:
+    """Write every result file of ``reg`` into ``out`` (already prepared). Returns paths."""
+    out = Path(out)
+    names = list(reg.T_world_scan)
+    poses = [reg.T_world_scan[n] for n in names]
+    paths = {
+        "poses": out / "poses.json",
+        "tum": out / "poses_tum.txt",
+        "kitti": out / "poses_kitti.txt",
+        "merged": out / "merged.ply",
+        "report": out / "report.json",
+    }
+    cert = (
+        reg.solve.certificate.to_dict() if reg.solve is not None and reg.solve.certificate else None
+    )
+    write_poses_json(
+        paths["poses"],
+        reg.T_world_scan,
+        world_frame=names[0] if names else None,
+        unregistered=reg.unregistered,
+        certificate=cert,
+    )
+    if poses:
+        write_poses_tum(paths["tum"], poses)
+        write_poses_kitti(paths["kitti"], poses)
+        pts, cols = merged_cloud(reg)
+        write_ply(paths["merged"], pts, cols)
+    atomic_write_json(paths["report"], reg.report())
+    return paths
+
+
+def residual_heatmap(reg, max_points: int = 200_000):
+    """Merged points and each point's distance to the nearest point of another scan."""
+    from scipy.spatial import cKDTree
+
+    idx = {s.name: i for i, s in enumerate(reg.scans)}
+    world = {n: transform_points(T, reg.scans[idx[n]].points) for n, T in reg.T_world_scan.items()}
+    trees = {n: cKDTree(p) for n, p in world.items()}
+    rng = np.random.default_rng(0)
+    per = max(1, max_points // max(len(world), 1))
+    pts, res = [], []
+    for n, p in world.items():
+        q = p if len(p) <= per else p[rng.choice(len(p), per, replace=False)]
+        best = np.full(len(q), np.inf)
+        for m, t in trees.items():
+            if m != n:
+                best = np.minimum(best, t.query(q)[0])
+        pts.append(q)
+        res.append(best)
+    return np.concatenate(pts), np.concatenate(res)

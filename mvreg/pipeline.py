@@ -1,0 +1,284 @@
+"""register(): a folder of scans in, globally aligned poses out. Reads as its stages:
+
+load -> preprocess -> candidate pairs -> pairwise alignment -> tracks -> global solve
+-> robust re-weighting -> multiview refinement -> evaluation.
+"""
+
+from __future__ import annotations
+
+import time
+from collections.abc import Sequence
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from mvreg.config import RegisterConfig, load_config
+from mvreg.errors import InputError
+from mvreg.geometry import transform_points
+from mvreg.io.loaders import Scan, list_scan_files, load_scan
+from mvreg.metrics import overlap_residual, pose_errors
+from mvreg.pairwise import (
+    PairResult,
+    align_pairs,
+    build_tracks,
+    candidate_pairs,
+    derive_voxel_size,
+    preprocess,
+)
+from mvreg.refine import GlobalSolution, refine_rounds, robust_rounds, solve_tracks
+from mvreg.viz import NullRecorder
+
+
+class _NoProgress:
+    def stage(self, name: str, total: int | None = None) -> None: ...
+    def advance(self, n: int = 1) -> None: ...
+    def done(self) -> None: ...
+
+
+@dataclass
+class Registration:
+    """The result of ``register``.
+
+    T_world_scan: {scan name: (4, 4) world_from_scan} for every registered scan; the world
+    frame is the first registered scan. ``unregistered`` lists the scans that could not be
+    connected to the rest (never given a made-up pose).
+    """
+
+    scan_names: list[str]
+    T_world_scan: dict[str, np.ndarray]
+    unregistered: list[str]
+    solve: object
+    pairs: list[dict]
+    config: RegisterConfig
+    voxel_size: float
+    timings: dict
+    robust_log: list[dict] = field(default_factory=list)
+    refine_log: list[dict] = field(default_factory=list)
+    overlap: dict | None = None
+    truth_errors: dict | None = None
+    scans: list[Scan] = field(default_factory=list, repr=False)
+    source: str | None = None
+
+    @property
+    def all_registered(self) -> bool:
+        return not self.unregistered
+
+    def __repr__(self) -> str:
+        c = self.solve.certificate if self.solve is not None else None
+        return (
+            f"Registration(scans={len(self.scan_names)}, registered={len(self.T_world_scan)}, "
+            f"unregistered={self.unregistered}, certified={c.certified if c else None}, "
+            f"time={self.timings.get('total', float('nan')):.2f}s)"
+        )
+
+    def report(self) -> dict:
+        """The content of report.json."""
+        s = self.solve
+        return {
+            "format": "mvreg.report/1",
+            "source": self.source,
+            "config": self.config.model_dump(mode="json"),
+            "voxel_size": self.voxel_size,
+            "scans": self.scan_names,
+            "registered": list(self.T_world_scan),
+            "unregistered": self.unregistered,
+            "timings_s": self.timings,
+            "pairs": self.pairs,
+            "bad_pairs": [p for p in self.pairs if p["accepted"] and p["final_weight"] == 0.0],
+            "solver": None if s is None else s.to_dict(),
+            "certificate": None if s is None or s.certificate is None else s.certificate.to_dict(),
+            "robust_rounds": self.robust_log,
+            "refine_rounds": self.refine_log,
+            "overlap_residual": self.overlap,
+            "ground_truth_errors": self.truth_errors,
+        }
+
+
+def register(
+    source: str | Path | Sequence[np.ndarray],
+    config: RegisterConfig | None = None,
+    *,
+    names: Sequence[str] | None = None,
+    recorder=None,
+    progress=None,
+    truth: dict[str, np.ndarray] | None = None,
+    **overrides,
+) -> Registration:
+    """Register a folder of scans (or a list of (N, 3) arrays) into one frame.
+
+    Args:
+        source: folder of scan files, or point arrays in their own frames.
+        config: a RegisterConfig; else defaults with ``overrides`` (dotted keys, e.g.
+            ``**{"solve.solver": "gpm"}``, or plain ``seed=1``).
+        names: names of the arrays when ``source`` is a list.
+        recorder: a mvreg.viz Recorder (default: none).
+        progress: an object with stage(name, total) / advance(n) / done() (CLI: rich bars).
+        truth: {name: 4x4 T_world_scan} to evaluate against; by default read from
+            ``ground_truth.json`` in the folder. Used only to evaluate, never to solve.
+    """
+    cfg = config if config is not None else load_config(**overrides)
+    rec = recorder if recorder is not None else NullRecorder()
+    prog = progress if progress is not None else _NoProgress()
+    timings: dict = {}
+    t_start = time.perf_counter()
+
+    def timed(name):
+        timings[name] = time.perf_counter() - timed.t
+        timed.t = time.perf_counter()
+
+    timed.t = t_start
+
+    scans, source_str, truth = _load(source, names, cfg, truth, prog)
+    timed("load")
+    rec.log_config(cfg.model_dump(mode="json"))
+    rec.log_raw_scans([s.name for s in scans], [s.points for s in scans])
+
+    voxel = derive_voxel_size(scans, cfg.preprocess)
+    prog.stage("preprocess", len(scans))
+    pre = []
+    for s in scans:
+        pre.append(preprocess(s, voxel, cfg.preprocess))
+        prog.advance()
+    timed("preprocess")
+
+    pairs = candidate_pairs(pre, cfg.pairs)
+    prog.stage("pairs", len(pairs))
+    results = align_pairs(pre, pairs, cfg.align, cfg.seed, progress=lambda _r: prog.advance())
+    timed("pairwise")
+
+    prog.stage("global solve")
+    step = [0]
+
+    def on_iteration(r):
+        step[0] += 1
+        rec.log_solver_iteration(step[0], r.objective, r.primal_residual, r.dual_residual, r.rho)
+
+    tracks = build_tracks(pre, results, cfg.tracks)
+    sol: GlobalSolution | None = None
+    weights = np.zeros(len(tracks.pairs))
+    robust_log, refine_log = [], []
+    if tracks.problem is not None:
+        sol = solve_tracks(tracks, cfg, callback=on_iteration)
+        timed("tracks_and_solve")
+        prog.stage("robust re-weighting")
+        sol, weights, robust_log = robust_rounds(tracks, sol, voxel, cfg, callback=on_iteration)
+        timed("robust")
+        prog.stage("refinement", cfg.refine.rounds)
+        sol, refine_log = refine_rounds(pre, sol, cfg, callback=on_iteration)
+        timed("refine")
+    prog.done()
+
+    names_all = [s.name for s in scans]
+    T = {} if sol is None else {names_all[i]: sol.T_world_scan[i] for i in sorted(sol.T_world_scan)}
+    unregistered = [n for n in names_all if n not in T]
+    pair_table = _pair_table(results, tracks, weights)
+    reg = Registration(
+        scan_names=names_all,
+        T_world_scan=T,
+        unregistered=unregistered,
+        solve=None if sol is None else sol.result,
+        pairs=pair_table,
+        config=cfg,
+        voxel_size=voxel,
+        timings=timings,
+        robust_log=robust_log,
+        refine_log=refine_log,
+        scans=scans,
+        source=source_str,
+    )
+    _evaluate(reg, pre, truth)
+    timed("evaluate")
+    timings["total"] = time.perf_counter() - t_start
+    if T:
+        idx = [names_all.index(n) for n in T]
+        rec.log_aligned(list(T), [scans[i].points for i in idx], list(T.values()))
+    return reg
+
+
+def _load(source, names, cfg, truth, prog):
+    if isinstance(source, (str, Path)):
+        folder = Path(source)
+        if not folder.is_dir():
+            raise InputError(f"{folder}: not a folder of scans")
+        files = list_scan_files(folder)
+        if not files:
+            raise InputError(f"{folder}: no scan files found")
+        prog.stage("load", len(files))
+        scans = []
+        for f in files:
+            scans.append(load_scan(f, min_points=cfg.min_points))
+            prog.advance()
+        if truth is None and (folder / "ground_truth.json").exists():
+            from mvreg.io.poses import read_poses_json
+
+            truth = read_poses_json(folder / "ground_truth.json")
+        src = str(folder)
+    else:
+        arrays = list(source)
+        names = list(names) if names is not None else [f"scan_{i:03d}" for i in range(len(arrays))]
+        if len(names) != len(arrays):
+            raise InputError(f"{len(names)} names for {len(arrays)} point arrays")
+        scans = []
+        for n, a in zip(names, arrays, strict=True):
+            a = np.asarray(a, dtype=np.float64)
+            if a.ndim != 2 or a.shape[1] != 3:
+                raise InputError(f"{n}: points must be an (N, 3) array, got {a.shape}")
+            ok = np.all(np.isfinite(a), axis=1)
+            if ok.sum() < cfg.min_points:
+                raise InputError(f"{n}: {int(ok.sum())} valid points, need {cfg.min_points}")
+            scans.append(
+                Scan(name=n, path=Path(n), points=a[ok], num_dropped_nonfinite=int((~ok).sum()))
+            )
+        src = None
+    if len(scans) < 2:
+        raise InputError(f"{source}: registration needs at least 2 scans, found {len(scans)}")
+    return scans, src, truth
+
+
+def _pair_table(results: list[PairResult], tracks, weights) -> list[dict]:
+    w_of = {(int(i), int(j)): float(w) for (i, j), w in zip(tracks.pairs, weights, strict=True)}
+    rows = []
+    for r in results:
+        rows.append(
+            {
+                "scans": list(r.names),
+                "accepted": bool(r.accepted),
+                "reason": r.reason,
+                "overlap_ratio": r.overlap_ratio,
+                "inlier_rmse": r.inlier_rmse,
+                "num_correspondences": int(r.num_correspondences),
+                "fitness": r.fitness,
+                "residual_ratio": r.residual_ratio,
+                "final_weight": w_of.get((r.i, r.j), 0.0) if r.accepted else 0.0,
+                "seconds": r.seconds,
+            }
+        )
+    return rows
+
+
+def _evaluate(reg: Registration, pre, truth) -> None:
+    """Overlap residual on the raw points; errors against ground truth when given."""
+    if not reg.T_world_scan:
+        return
+    idx = {s.name: i for i, s in enumerate(reg.scans)}
+    world = [transform_points(T, reg.scans[idx[n]].points) for n, T in reg.T_world_scan.items()]
+    spacing = float(np.median([p.noise for p in pre])) if pre else 0.0
+    thresh = max(2.0 * pre[0].fine_voxel_size, 10 * spacing)
+    reg.overlap = overlap_residual(world, thresh, seed=reg.config.seed)
+    if truth:
+        common = [n for n in reg.T_world_scan if n in truth]
+        if len(common) >= 2:
+            est = np.stack([reg.T_world_scan[n] for n in common])
+            tru = np.stack([np.asarray(truth[n]) for n in common])
+            err = pose_errors(est, tru)
+            reg.truth_errors = {
+                "scans": common,
+                "rotation_deg": err.rotation_deg.tolist(),
+                "translation": err.translation.tolist(),
+                **err.summary(),
+            }
+            tw = [transform_points(np.asarray(truth[n]), reg.scans[idx[n]].points) for n in common]
+            reg.truth_errors["truth_overlap_residual"] = overlap_residual(
+                tw, thresh, seed=reg.config.seed
+            )

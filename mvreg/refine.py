@@ -1,0 +1,203 @@
+"""Stages 6 and 7: robust re-weighting of pairs and multiview ICP refinement.
+
+Both re-solve the global problem warm-started from the current rotations.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass
+
+import numpy as np
+
+from mvreg.config import RegisterConfig, RobustConfig
+from mvreg.geometry import invert_transform, transform_points
+from mvreg.pairwise import PreprocessedScan, Tracks, TracksConfig, pair_correspondences
+from mvreg.pairwise.tracks import tracks_from_correspondences
+from mvreg.solver import SolveResult, solve
+
+
+@dataclass
+class GlobalSolution:
+    """Poses of the registered scans and the solve that produced them.
+
+    T_world_scan: {scan index: (4, 4)}; the world frame is the first registered scan.
+    """
+
+    T_world_scan: dict[int, np.ndarray]
+    result: SolveResult
+    tracks: Tracks
+
+
+def solve_tracks(
+    tracks: Tracks,
+    cfg: RegisterConfig,
+    init: dict[int, np.ndarray] | None = None,
+    callback: Callable | None = None,
+) -> GlobalSolution:
+    """Solve the patch problem of ``tracks``; warm start from ``init`` poses when given."""
+    problem = tracks.problem
+    scans = [int(s) for s in tracks.patch_scans]
+    R0 = "spectral"
+    if init is not None and all(s in init for s in scans):
+        R0 = np.stack([init[s][:3, :3] for s in scans])
+    s = cfg.solve
+    res = solve(
+        problem,
+        s.solver,
+        method=s.method,
+        rho=s.rho,
+        max_iter=s.max_iter,
+        allow_reflections=s.allow_reflections,
+        init=R0,
+        seed=cfg.seed,
+        callback=callback,
+    )
+    poses = {scan: T for scan, T in zip(scans, res.T_world_patch, strict=True)}
+    return GlobalSolution(poses, res, tracks)
+
+
+def pair_residuals(tracks: Tracks, T_world_scan: dict[int, np.ndarray]) -> np.ndarray:
+    """(P,) median world distance between each pair's linked points (nan: pair unused)."""
+    out = np.full(len(tracks.pairs), np.nan)
+    if len(tracks.link_obs) == 0:
+        return out
+    a, b = tracks.link_obs[:, 0], tracks.link_obs[:, 1]
+    sa, sb = tracks.obs_scan[a], tracks.obs_scan[b]
+    ok = np.array(
+        [int(x) in T_world_scan and int(y) in T_world_scan for x, y in zip(sa, sb, strict=True)]
+    )
+    if not np.any(ok):
+        return out
+    pa = np.empty((len(a), 3))
+    pb = np.empty((len(a), 3))
+    for s in np.unique(np.r_[sa[ok], sb[ok]]):
+        T = T_world_scan[int(s)]
+        ma, mb = ok & (sa == s), ok & (sb == s)
+        pa[ma] = transform_points(T, tracks.coords[a[ma]])
+        pb[mb] = transform_points(T, tracks.coords[b[mb]])
+    dist = np.linalg.norm(pa - pb, axis=1)
+    for p in np.unique(tracks.link_pair[ok]):
+        sel = ok & (tracks.link_pair == p)
+        out[p] = float(np.median(dist[sel]))
+    return out
+
+
+def robust_weights(residuals: np.ndarray, voxel: float, cfg: RobustConfig) -> np.ndarray:
+    """Pair weights from residuals (see RobustConfig); unused pairs (nan) keep weight 0."""
+    r = np.where(np.isfinite(residuals), residuals, np.inf)
+    finite = r[np.isfinite(r)]
+    if finite.size == 0:
+        return np.zeros_like(r)
+    c = max(cfg.scale_factor * float(np.median(finite)), cfg.min_scale_voxels * voxel)
+    w = 1.0 / (1.0 + (r / c) ** 2) ** 2
+    w[w < cfg.zero_weight] = 0.0
+    return w
+
+
+def robust_rounds(
+    tracks: Tracks,
+    sol: GlobalSolution,
+    voxel: float,
+    cfg: RegisterConfig,
+    callback: Callable | None = None,
+) -> tuple[GlobalSolution, np.ndarray, list[dict]]:
+    """Iteratively re-weight pairs by their residual under the global poses and re-solve.
+
+    Returns the final solution, the final pair weights (P,) and a log per round.
+    """
+    weights = np.ones(len(tracks.pairs))
+    log = []
+    for k in range(cfg.robust.rounds):
+        res = pair_residuals(sol.tracks, sol.T_world_scan)
+        new = robust_weights(res, voxel, cfg.robust)
+        log.append(
+            {
+                "round": k + 1,
+                "pair_residual_median": float(np.nanmedian(res))
+                if np.any(np.isfinite(res))
+                else None,
+                "pairs_zero_weight": int(np.sum(new == 0)),
+            }
+        )
+        if np.allclose(new, weights, atol=0.02):
+            break
+        weights = new
+        sol = solve_tracks(
+            tracks.reweighted(weights), cfg, init=sol.T_world_scan, callback=callback
+        )
+    return sol, weights, log
+
+
+def overlapping_pairs(
+    pre: Sequence[PreprocessedScan], T_world_scan: dict[int, np.ndarray], margin: float
+) -> list[tuple[int, int]]:
+    """Registered scan pairs whose world bounding boxes overlap (grown by ``margin``)."""
+    boxes = {}
+    for s, T in T_world_scan.items():
+        w = transform_points(T, pre[s].points)
+        boxes[s] = (w.min(0) - margin, w.max(0) + margin)
+    keys = sorted(boxes)
+    out = []
+    for a_i, i in enumerate(keys):
+        for j in keys[a_i + 1 :]:
+            lo = np.maximum(boxes[i][0], boxes[j][0])
+            hi = np.minimum(boxes[i][1], boxes[j][1])
+            if np.all(lo < hi):
+                out.append((i, j))
+    return out
+
+
+def refine_rounds(
+    pre: Sequence[PreprocessedScan],
+    sol: GlobalSolution,
+    cfg: RegisterConfig,
+    callback: Callable | None = None,
+) -> tuple[GlobalSolution, list[dict]]:
+    """Multiview ICP: correspondences of all overlapping scans under the global poses,
+    tracks, global re-solve warm-started; ``cfg.refine.rounds`` times, shrinking distance."""
+    log = []
+    voxel = pre[0].voxel_size
+    names = [p.name for p in pre]
+    points = [p.fine_points for p in pre]
+    for k in range(cfg.refine.rounds):
+        dist_v = cfg.refine.distance_voxels[min(k, len(cfg.refine.distance_voxels) - 1)]
+        tcfg = TracksConfig(**{**cfg.tracks.model_dump(), "max_correspondence_voxels": dist_v})
+        pairs, corr, dists = [], [], []
+        for i, j in overlapping_pairs(pre, sol.T_world_scan, dist_v * voxel):
+            T_i_j = invert_transform(sol.T_world_scan[i]) @ sol.T_world_scan[j]
+            idx_i, idx_j = pair_correspondences(pre[i], pre[j], T_i_j, tcfg)
+            if len(idx_i) < cfg.refine.min_correspondences:
+                continue
+            moved = transform_points(T_i_j, pre[j].fine_points[idx_j])
+            pairs.append((i, j))
+            corr.append((idx_i, idx_j))
+            dists.append(np.linalg.norm(pre[i].fine_points[idx_i] - moved, axis=1))
+        if not pairs:
+            break
+        pairs_arr = np.array(pairs, dtype=np.int64)
+        # Robust weights per pair from its residual under the current poses.
+        med = np.array([float(np.median(d)) for d in dists])
+        w = robust_weights(med, voxel, cfg.robust)
+        tracks = tracks_from_correspondences(points, names, pairs_arr, corr, w, distances=dists)
+        if tracks.problem is None:
+            break
+        prev = sol
+        sol = solve_tracks(tracks, cfg, init=sol.T_world_scan, callback=callback)
+        moved_max = max(
+            float(np.linalg.norm(sol.T_world_scan[s][:3, 3] - prev.T_world_scan[s][:3, 3]))
+            for s in sol.T_world_scan
+            if s in prev.T_world_scan
+        )
+        log.append(
+            {
+                "round": k + 1,
+                "distance_voxels": dist_v,
+                "pairs": len(pairs),
+                "observations": int(tracks.problem.num_observations),
+                "pair_residual_median": float(np.median(med)),
+                "max_translation_change": moved_max,
+                "certified": sol.result.certified,
+            }
+        )
+    return sol, log

@@ -103,6 +103,7 @@ def register(
     recorder=None,
     progress=None,
     truth: dict[str, np.ndarray] | None = None,
+    pair_hook=None,
     **overrides,
 ) -> Registration:
     """Register a folder of scans (or a list of (N, 3) arrays) into one frame.
@@ -116,6 +117,8 @@ def register(
         progress: an object with stage(name, total) / advance(n) / done() (CLI: rich bars).
         truth: {name: 4x4 T_world_scan} to evaluate against; by default read from
             ``ground_truth.json`` in the folder. Used only to evaluate, never to solve.
+        pair_hook: optional ``f(pre, results) -> results`` applied after pairwise
+            alignment (benchmarks and tests use it to inject wrong pairs).
     """
     cfg = config if config is not None else load_config(**overrides)
     rec = recorder if recorder is not None else NullRecorder()
@@ -145,6 +148,8 @@ def register(
     pairs = candidate_pairs(pre, cfg.pairs)
     prog.stage("pairs", len(pairs))
     results = align_pairs(pre, pairs, cfg.align, cfg.seed, progress=lambda _r: prog.advance())
+    if pair_hook is not None:
+        results = pair_hook(pre, results)
     timed("pairwise")
 
     prog.stage("global solve")

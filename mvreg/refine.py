@@ -15,6 +15,7 @@ from mvreg.geometry import invert_transform, transform_points
 from mvreg.pairwise import PreprocessedScan, Tracks, TracksConfig, pair_correspondences
 from mvreg.pairwise.tracks import tracks_from_correspondences
 from mvreg.solver import SolveResult, solve
+from mvreg.solver.reg_admm import IterationRecord
 
 
 @dataclass
@@ -53,6 +54,17 @@ def solve_tracks(
         seed=cfg.seed,
         callback=callback,
     )
+    if callback is not None:  # one point per global solve, after its ADMM iterations
+        c = res.certificate
+        callback(
+            IterationRecord(
+                res.iterations,
+                res.objective,
+                c.kkt_residual if c is not None else float("nan"),
+                0.0,
+                res.rho_final if res.rho_final is not None else float("nan"),
+            )
+        )
     poses = {scan: T for scan, T in zip(scans, res.T_world_patch, strict=True)}
     return GlobalSolution(poses, res, tracks)
 

@@ -1,0 +1,396 @@
+"""Stage 1: voxel size, downsampling, consistently oriented normals, FPFH features.
+
+Each scan is kept at two resolutions:
+
+* the *feature level*, voxel size ``v`` (derived from the data unless given): normals,
+  FPFH (radius ``fpfh_radius_voxels * v``), feature RANSAC and coarse ICP;
+* the *fine level*, voxel ``fine_voxel_ratio * v``: fine ICP, pair scores and the
+  correspondences that become tracks.
+
+Outliers: points alone in a feature-level voxel (fewer than ``outlier_min_cell_share``
+times the typical count) are dropped first (:func:`outlier_mask`).
+
+Voxel size from the data (:func:`derive_voxel_size`): for each scan, the voxel at which
+it keeps about ``target_points_per_scan`` points (voxels holding a single point are not
+counted; point counts of a surface fall like 1 / v^2, so two corrections from a first
+guess suffice); the median over scans, and
+never less than ``min_voxel_spacings`` times the median point spacing. Nothing assumes
+units: a scan in millimetres gets a voxel 1000 times that of the same scan in metres.
+
+Normal orientation: PCA normals are made consistent within the scan by propagation along
+a minimum spanning tree (Open3D ``orient_normals_consistent_tangent_plane``); then one sign
+per scan is chosen from the first cue the data gives: the normals stored in the file,
+else a sensor origin stored in the file, else "outward" -- a partial scan of an object's
+exterior is convex on balance, so outward normals have sum_p n_p . (p - centroid) > 0.
+Outward is also towards the sensor for any scan taken from outside the object. No cue
+assumes the sensor sits at the origin.
+
+View direction: a range scan only holds surfaces that face its sensor, so one direction
+``d`` has ``n . d > 0`` for (nearly) all its oriented normals. :func:`view_direction`
+finds the centre of the cone of normals; when the share of normals facing it is at least
+``min_view_facing`` the scan is treated as a single view seen from ``d`` (orthographic
+approximation) and pairwise alignment can check free-space consistency (see
+:mod:`mvreg.pairwise.align`); otherwise (merged or all-round scans) the check is skipped.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import TYPE_CHECKING
+
+import numpy as np
+from pydantic import BaseModel, ConfigDict, Field
+from scipy.spatial import cKDTree
+
+from mvreg.errors import ConfigError
+from mvreg.pairwise._threads import single_threaded_blas
+
+if TYPE_CHECKING:
+    from mvreg.io.loaders import Scan
+
+
+class PreprocessConfig(BaseModel):
+    """Stage 1 settings. Distances are in multiples of the voxel size ``v``."""
+
+    model_config = ConfigDict(extra="forbid")
+
+    voxel_size: float | None = Field(
+        None, gt=0, description="feature-level voxel size in data units; None = from the data"
+    )
+    target_points_per_scan: int = Field(
+        2000, ge=100, description="derived voxel keeps about this many points per scan"
+    )
+    min_voxel_spacings: float = Field(
+        3.0, gt=0, description="derived voxel >= this times the median point spacing"
+    )
+    fine_voxel_ratio: float = Field(0.5, gt=0, le=1, description="fine voxel / voxel")
+    normal_radius_voxels: float = Field(2.0, gt=0, description="normal PCA radius / voxel")
+    normal_max_neighbours: int = Field(30, ge=3)
+    orient_neighbours: int = Field(12, ge=3, description="k of the orientation spanning tree")
+    fpfh_radius_voxels: float = Field(5.0, gt=0, description="FPFH radius / voxel")
+    fpfh_max_neighbours: int = Field(100, ge=5)
+    outlier_min_cell_share: float = Field(
+        0.05, ge=0, lt=1, description="drop points in voxels this sparse (0 = keep all)"
+    )
+    min_view_facing: float = Field(
+        0.8, ge=0, le=1, description="share of normals facing one direction for a 'view'"
+    )
+
+
+@dataclass
+class PreprocessedScan:
+    """A scan ready for pairwise alignment (local frame, the scan's units).
+
+    Attributes:
+        name: the scan's file name.
+        voxel_size: feature-level voxel size ``v``.
+        points, normals: (N, 3) float64 feature-level points and unit outward normals.
+        features: (N, 33) float64 FPFH descriptors of ``points``.
+        fine_voxel_size: voxel of the fine level.
+        fine_points, fine_normals: (F, 3) float64 fine-level points and normals (oriented
+            like the feature level).
+        noise: median distance from a fine point's nearest neighbour to the point's tangent
+            plane: the residual a perfect alignment leaves (data units).
+        orientation: which cue fixed the normals' sign ("file normals", "sensor origin",
+            "outward").
+        num_raw_points: points of the loaded scan.
+        view_direction: (3,) unit direction towards the sensor (orthographic
+            approximation), or None when the scan does not look like a single view.
+        view_facing: share of normals facing ``view_direction`` (n . d > 0.05).
+        num_outliers_removed: raw points dropped as isolated (:func:`outlier_mask`).
+    """
+
+    name: str
+    voxel_size: float
+    points: np.ndarray
+    normals: np.ndarray
+    features: np.ndarray
+    fine_voxel_size: float
+    fine_points: np.ndarray
+    fine_normals: np.ndarray
+    noise: float
+    orientation: str
+    num_raw_points: int
+    view_direction: np.ndarray | None = None
+    view_facing: float = 0.0
+    num_outliers_removed: int = 0
+    _cache: dict = field(default_factory=dict, repr=False, compare=False)
+
+    def __repr__(self) -> str:
+        return (
+            f"PreprocessedScan({self.name!r}, points={len(self.points)}, "
+            f"fine_points={len(self.fine_points)}, voxel_size={self.voxel_size:.4g}, "
+            f"noise={self.noise:.3g}, orientation={self.orientation!r})"
+        )
+
+    # Open3D objects and KD-trees, built once on demand.
+    def o3d_cloud(self, level: str = "feature"):
+        key = f"o3d_{level}"
+        if key not in self._cache:
+            pts, nrm = (
+                (self.points, self.normals)
+                if level == "feature"
+                else (self.fine_points, self.fine_normals)
+            )
+            self._cache[key] = _to_o3d(pts, nrm)
+        return self._cache[key]
+
+    def o3d_features(self):
+        if "o3d_fpfh" not in self._cache:
+            import open3d as o3d
+
+            feat = o3d.pipelines.registration.Feature()
+            feat.data = np.ascontiguousarray(self.features.T)
+            self._cache["o3d_fpfh"] = feat
+        return self._cache["o3d_fpfh"]
+
+    def fine_tree(self) -> cKDTree:
+        if "fine_tree" not in self._cache:
+            self._cache["fine_tree"] = cKDTree(self.fine_points)
+        return self._cache["fine_tree"]
+
+
+def _to_o3d(points: np.ndarray, normals: np.ndarray | None = None):
+    import open3d as o3d
+
+    pcd = o3d.geometry.PointCloud()
+    pcd.points = o3d.utility.Vector3dVector(np.ascontiguousarray(points, dtype=np.float64))
+    if normals is not None:
+        pcd.normals = o3d.utility.Vector3dVector(np.ascontiguousarray(normals, dtype=np.float64))
+    return pcd
+
+
+def _voxel_cells(points: np.ndarray, voxel: float) -> tuple[np.ndarray, np.ndarray]:
+    """Cell index of each point (N,) and the number of points of each cell (C,)."""
+    keys = np.floor((points - points.min(axis=0)) / voxel).astype(np.int64)
+    dims = keys.max(axis=0) + 1
+    flat = (keys[:, 0] * dims[1] + keys[:, 1]) * dims[2] + keys[:, 2]
+    _, cell, count = np.unique(flat, return_inverse=True, return_counts=True)
+    return cell.reshape(-1), count
+
+
+def _voxel_count(points: np.ndarray, voxel: float) -> int:
+    """Cells holding two or more points (isolated outliers do not count)."""
+    return int(np.count_nonzero(_voxel_cells(points, voxel)[1] >= 2))
+
+
+def outlier_mask(points: np.ndarray, voxel: float, min_cell_share: float = 0.05) -> np.ndarray:
+    """(N,) bool, True for points kept: those in voxels holding at least
+    ``min_cell_share`` times the median number of points per voxel (and at least 2).
+
+    Surfaces fill their voxels with many points; stray points (outliers, spray) sit alone
+    in otherwise empty ones. Nothing is removed when voxels hold fewer than 4 points on
+    median (too sparse to tell).
+    """
+    cell, count = _voxel_cells(points, voxel)
+    median = float(np.median(count[cell]))  # per point: the typical cell a point sits in
+    if median < 4:
+        return np.ones(len(points), bool)
+    return count[cell] >= max(2.0, min_cell_share * median)
+
+
+def median_spacing(points: np.ndarray, max_samples: int = 4000) -> float:
+    """Median distance from a point to its nearest neighbour (on an even subsample)."""
+    stride = max(1, len(points) // max_samples)
+    d, _ = cKDTree(points).query(points[::stride], k=2)
+    return float(np.median(d[:, 1]))
+
+
+def derive_voxel_size(scans: list[Scan], cfg: PreprocessConfig | None = None) -> float:
+    """Feature-level voxel size from the data (see the module docstring). Data units."""
+    cfg = cfg or PreprocessConfig()
+    if cfg.voxel_size is not None:
+        return float(cfg.voxel_size)
+    if not scans:
+        raise ConfigError("cannot derive a voxel size from zero scans")
+    target = cfg.target_points_per_scan
+    sizes, spacings = [], []
+    for scan in scans:
+        pts = scan.points
+        spacing = median_spacing(pts)
+        if not spacing > 0:  # duplicated points: fall back on the extent
+            spacing = float(np.linalg.norm(np.ptp(pts, axis=0))) / np.sqrt(len(pts))
+        spacings.append(spacing)
+        voxel = spacing * np.sqrt(max(len(pts), 1) / target)
+        for _ in range(2):
+            voxel *= np.sqrt(_voxel_count(pts, voxel) / target)
+        sizes.append(voxel)
+    voxel = max(float(np.median(sizes)), cfg.min_voxel_spacings * float(np.median(spacings)))
+    if not np.isfinite(voxel) or voxel <= 0:
+        raise ConfigError("could not derive a voxel size from the data (degenerate scans)")
+    return voxel
+
+
+def _estimate_normals(pcd, radius: float, max_nn: int) -> None:
+    import open3d as o3d
+
+    pcd.estimate_normals(o3d.geometry.KDTreeSearchParamHybrid(radius=radius, max_nn=max_nn))
+
+
+def _orient_like(normals: np.ndarray, points: np.ndarray, ref_points, ref_normals) -> np.ndarray:
+    """Flip each normal to agree with the normal of the nearest reference point."""
+    _, idx = cKDTree(ref_points).query(points)
+    sign = np.where(np.einsum("ij,ij->i", normals, ref_normals[idx]) < 0, -1.0, 1.0)
+    return normals * sign[:, None]
+
+
+def preprocess(
+    scan: Scan, voxel_size: float, cfg: PreprocessConfig | None = None
+) -> PreprocessedScan:
+    """Downsample, orient normals and compute FPFH for one scan (see the module docstring).
+
+    Args:
+        scan: a loaded scan.
+        voxel_size: feature-level voxel, e.g. from :func:`derive_voxel_size` (the same for
+            every scan of a run, so that features are comparable).
+    """
+    cfg = cfg or PreprocessConfig()
+    if not voxel_size > 0:
+        raise ConfigError(f"voxel_size must be > 0, got {voxel_size}")
+    with single_threaded_blas():
+        return _preprocess(scan, float(voxel_size), cfg)
+
+
+def _preprocess(scan: Scan, v: float, cfg: PreprocessConfig) -> PreprocessedScan:
+    import open3d as o3d
+
+    keep = outlier_mask(scan.points, v, cfg.outlier_min_cell_share)
+    if cfg.outlier_min_cell_share > 0 and not keep.all():
+        raw = _to_o3d(scan.points[keep], None if scan.normals is None else scan.normals[keep])
+    else:
+        raw = _to_o3d(scan.points, scan.normals)
+    coarse = raw.voxel_down_sample(v)
+    pts = np.asarray(coarse.points)
+    if len(pts) < 10:
+        raise ConfigError(
+            f"{scan.name}: only {len(pts)} points at voxel size {v:.4g}; the voxel is too "
+            "large for this scan"
+        )
+    file_normals = np.asarray(coarse.normals).copy() if scan.normals is not None else None
+    coarse.normals = o3d.utility.Vector3dVector()
+    _estimate_normals(coarse, cfg.normal_radius_voxels * v, cfg.normal_max_neighbours)
+    k = min(cfg.orient_neighbours, len(pts) - 1)
+    try:
+        coarse.orient_normals_consistent_tangent_plane(k)
+    except RuntimeError:
+        pass  # degenerate neighbourhood graph: keep PCA signs, the global sign still applies
+    normals = np.asarray(coarse.normals).copy()
+    if file_normals is not None:
+        vote, orientation = np.sum(np.einsum("ij,ij->i", normals, file_normals)), "file normals"
+    elif scan.sensor_origin is not None:
+        vote = np.sum(np.sign(np.einsum("ij,ij->i", normals, scan.sensor_origin - pts)))
+        orientation = "sensor origin"
+    else:
+        vote, orientation = np.sum(np.einsum("ij,ij->i", normals, pts - pts.mean(0))), "outward"
+    if vote < 0:
+        normals = -normals
+    coarse.normals = o3d.utility.Vector3dVector(normals)
+    fpfh = o3d.pipelines.registration.compute_fpfh_feature(
+        coarse,
+        o3d.geometry.KDTreeSearchParamHybrid(
+            radius=cfg.fpfh_radius_voxels * v, max_nn=cfg.fpfh_max_neighbours
+        ),
+    )
+    fine_v = cfg.fine_voxel_ratio * v
+    fine_pts, fine_nrm = _resample(raw, fine_v, cfg, pts, normals)
+    out = PreprocessedScan(
+        name=scan.name,
+        voxel_size=v,
+        points=pts.copy(),
+        normals=normals,
+        features=np.asarray(fpfh.data).T.copy(),
+        fine_voxel_size=fine_v,
+        fine_points=fine_pts,
+        fine_normals=fine_nrm,
+        noise=_plane_noise(fine_pts, fine_nrm),
+        orientation=orientation,
+        num_raw_points=scan.num_points,
+        num_outliers_removed=int(np.count_nonzero(~keep)) if cfg.outlier_min_cell_share else 0,
+    )
+    direction, facing = view_direction(normals)
+    out.view_facing = facing
+    out.view_direction = direction if facing >= cfg.min_view_facing else None
+    out._cache["o3d_feature"] = coarse
+    out._cache["o3d_fpfh"] = fpfh
+    return out
+
+
+def _resample(raw, voxel: float, cfg: PreprocessConfig, ref_pts, ref_nrm):
+    down = raw.voxel_down_sample(voxel)
+    down.normals = type(down.normals)()
+    _estimate_normals(down, cfg.normal_radius_voxels * voxel, cfg.normal_max_neighbours)
+    pts = np.asarray(down.points).copy()
+    return pts, _orient_like(np.asarray(down.normals).copy(), pts, ref_pts, ref_nrm)
+
+
+def resample(
+    scan: Scan, pre: PreprocessedScan, voxel_size: float, cfg: PreprocessConfig | None = None
+) -> tuple[np.ndarray, np.ndarray]:
+    """The scan at another voxel size, normals oriented like ``pre``'s.
+
+    For refinement at a finer level than ``pre.fine_points``. Returns (P, 3) points and
+    (P, 3) unit normals, float64, in the scan's local frame.
+    """
+    cfg = cfg or PreprocessConfig()
+    return _resample(_to_o3d(scan.points), float(voxel_size), cfg, pre.points, pre.normals)
+
+
+def _fibonacci_cap(n: int, max_polar_deg: float = 180.0) -> np.ndarray:
+    """n evenly spread unit vectors within ``max_polar_deg`` of +z (the sphere if 180)."""
+    k = np.arange(n) + 0.5
+    lowest = np.cos(np.radians(max_polar_deg))
+    polar = np.arccos(1.0 - (1.0 - lowest) * k / n)
+    azimuth = np.pi * (1.0 + 5.0**0.5) * k
+    return np.stack(
+        [np.cos(azimuth) * np.sin(polar), np.sin(azimuth) * np.sin(polar), np.cos(polar)], 1
+    )
+
+
+_DIRECTIONS = _fibonacci_cap(400)
+_CAP = np.vstack([[0.0, 0.0, 1.0], _fibonacci_cap(400, 12.0)])
+
+
+def view_direction(normals: np.ndarray, min_cos: float = 0.05) -> tuple[np.ndarray, float]:
+    """Estimated direction towards the sensor, and the share of normals facing it.
+
+    A range scan holds only surfaces facing its sensor, so its normals fill a cone around
+    the view direction. Among the directions faced by (nearly) the largest share of
+    normals -- a plateau, since many directions are faced by all of them -- the estimate
+    is the centre of the cone: the one whose small cosines with the normals are largest
+    (a low quantile, past the share that faces no direction: mis-oriented normals). The
+    mean normal would be biased towards large faces. Searched over 400 directions on the
+    sphere, then 400 within 12 degrees of the best, using at most 1000 of the normals.
+    Returns ((3,) unit vector, share of all normals with cosine > ``min_cos``).
+    """
+    sample = normals[:: max(1, len(normals) // 1000)]
+    n = len(sample)
+    candidates = _DIRECTIONS
+    for _ in range(2):
+        cos = candidates @ sample.T  # (directions, normals)
+        share = np.mean(cos > min_cos, axis=1)
+        top = share.max()
+        k = min(n - 1, int((1.0 - top + 0.02) * n))
+        margin = np.partition(cos, k, axis=1)[:, k]
+        margin[share < top - 0.01] = -np.inf
+        best = candidates[int(np.argmax(margin))]
+        candidates = _CAP @ _rotation_from_z(best).T  # directions around the best
+    return best, float(np.mean(normals @ best > min_cos))
+
+
+def _rotation_from_z(d: np.ndarray) -> np.ndarray:
+    """A rotation taking +z to the unit vector d."""
+    z = np.array([0.0, 0.0, 1.0])
+    v = np.cross(z, d)
+    c = float(z @ d)
+    if np.linalg.norm(v) < 1e-12:
+        return np.eye(3) if c > 0 else np.diag([1.0, -1.0, -1.0])
+    k = np.array([[0, -v[2], v[1]], [v[2], 0, -v[0]], [-v[1], v[0], 0]])
+    return np.eye(3) + k + k @ k / (1.0 + c)
+
+
+def _plane_noise(points: np.ndarray, normals: np.ndarray) -> float:
+    """Median |n_p . (q - p)| over points p with nearest other point q (same scan)."""
+    _, idx = cKDTree(points).query(points, k=2)
+    q = points[idx[:, 1]]
+    r = np.abs(np.einsum("ij,ij->i", normals, q - points))
+    return float(max(np.median(r), 1e-12 * (np.ptp(points) + 1.0)))

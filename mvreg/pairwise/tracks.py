@@ -1,0 +1,368 @@
+"""Stage 4: correspondences of accepted pairs -> tracks -> the patch problem.
+
+Each accepted pair contributes mutual nearest neighbours between the two scans' fine
+points (after alignment, within ``max_correspondence_voxels * v``, normals agreeing).
+Union-find over all of them (connected components of the correspondence graph) gives
+tracks: one physical point seen by several scans, one node of the
+:class:`~mvreg.solver.problem.PatchProblem`. A track that sees a scan twice is
+inconsistent (two points of one scan cannot be the same point). With many overlapping
+scans such chains are common (mutual nearest neighbours of differently sampled surfaces
+drift along a chain of scans: on the ten bunny scans about a third of the components),
+so by default (``split_conflicting_tracks``) a conflicting component is rebuilt greedily,
+its links taken shortest first and a link refused when it would put two points of one
+scan into a track (counted in ``num_refused_links``); otherwise it is dropped (counted in
+``num_dropped_tracks``). Either way every track sees each scan at most once. Patches
+are the scans (names = file names); a scan's
+observations are its fine points at their local coordinates.
+
+Pairs can be re-weighted later without new nearest-neighbour searches:
+``tracks.reweighted(pair_weights)`` rebuilds the tracks from the stored correspondences,
+leaving out pairs of weight 0; an observation's weight is the largest weight of the pairs
+that link it.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from dataclasses import dataclass, field
+
+import numpy as np
+import scipy.sparse as sp
+from pydantic import BaseModel, ConfigDict, Field
+from scipy.sparse.csgraph import connected_components
+
+from mvreg.geometry import transform_points
+from mvreg.pairwise._threads import single_threaded_blas
+from mvreg.pairwise.align import PairResult
+from mvreg.pairwise.correspondences import mutual_correspondences
+from mvreg.pairwise.preprocess import PreprocessedScan
+
+
+class TracksConfig(BaseModel):
+    """Stage 4 settings. Distances are multiples of the feature voxel size ``v``."""
+
+    model_config = ConfigDict(extra="forbid")
+
+    max_correspondence_voxels: float = Field(
+        1.0, gt=0, description="mutual nearest neighbours within this distance / v"
+    )
+    min_normal_cos: float = Field(0.7, ge=-1, le=1, description="normals must agree")
+    max_correspondences_per_pair: int | None = Field(
+        None, ge=4, description="evenly thin a pair's correspondences to at most this many"
+    )
+    split_conflicting_tracks: bool = Field(
+        True, description="split tracks that see a scan twice (else drop them)"
+    )
+
+
+@dataclass
+class Tracks:
+    """Tracks over all scans and the patch problem built from them.
+
+    Observation arrays (length K, over all scans):
+        obs_scan: scan index; obs_point: index into that scan's fine points;
+        obs_node: track (node) id 0..num_tracks-1; coords: (K, 3) local coordinates;
+        weight: (K,) observation weight; obs_pair: (K,) index into ``pairs`` of the first
+        pair that linked the observation.
+    Links (length L, one per kept correspondence): ``link_obs`` (L, 2) observation indices,
+    ``link_pair`` (L,) pair index; they say exactly which pair joined which observations.
+    Pairs (length P): ``pairs`` (P, 2) scan indices, ``pair_weights`` (P,),
+    ``pair_num_correspondences`` (P,) before conflicts are resolved.
+    Counts: ``num_conflicting_tracks`` components that saw a scan twice, of which
+    ``num_dropped_tracks`` were dropped (drop mode) or split by refusing
+    ``num_refused_links`` links (split mode); ``num_dropped_observations`` points that
+    ended in no track of two or more.
+
+    ``problem`` is the PatchProblem over the largest set of scans connected by tracks
+    (patch p is scan ``patch_scans[p]``; its observations are ``problem_observations``
+    of the arrays above); ``unconnected_scans`` names the scans left out. ``problem`` is
+    None when no pair is linked. It is connected by construction; whether every patch
+    shares d+1 independent nodes is left to the solver (``problem.check_local_rigidity()``).
+    """
+
+    scan_names: list[str]
+    obs_scan: np.ndarray
+    obs_point: np.ndarray
+    obs_node: np.ndarray
+    coords: np.ndarray
+    weight: np.ndarray
+    obs_pair: np.ndarray
+    link_obs: np.ndarray
+    link_pair: np.ndarray
+    pairs: np.ndarray
+    pair_weights: np.ndarray
+    pair_num_correspondences: np.ndarray
+    num_tracks: int
+    num_conflicting_tracks: int
+    num_dropped_tracks: int
+    num_refused_links: int
+    num_dropped_observations: int
+    patch_scans: np.ndarray
+    problem_observations: np.ndarray
+    unconnected_scans: list[str]
+    problem: object | None = field(default=None, repr=False)
+    _inputs: tuple = field(default=(), repr=False, compare=False)
+
+    @property
+    def num_observations(self) -> int:
+        return int(len(self.obs_scan))
+
+    def __repr__(self) -> str:
+        return (
+            f"Tracks(scans={len(self.scan_names)}, pairs={len(self.pairs)}, "
+            f"tracks={self.num_tracks}, observations={self.num_observations}, "
+            f"conflicting={self.num_conflicting_tracks}, dropped={self.num_dropped_tracks}, "
+            f"refused_links={self.num_refused_links}, unconnected={self.unconnected_scans})"
+        )
+
+    def reweighted(self, pair_weights: Sequence[float] | np.ndarray) -> Tracks:
+        """Tracks rebuilt with new pair weights (0 leaves a pair out), same correspondences."""
+        points, names, pairs, corr, _, distances, split = self._inputs
+        return tracks_from_correspondences(
+            points, names, pairs, corr, pair_weights, distances=distances, split_conflicts=split
+        )
+
+
+def pair_correspondences(
+    pre_i: PreprocessedScan,
+    pre_j: PreprocessedScan,
+    T_i_j: np.ndarray,
+    cfg: TracksConfig | None = None,
+) -> tuple[np.ndarray, np.ndarray]:
+    """Mutual correspondences between two scans' fine points -> (idx_i, idx_j)."""
+    cfg = cfg or TracksConfig()
+    idx_i, idx_j = mutual_correspondences(
+        pre_i.fine_points,
+        pre_j.fine_points,
+        T_i_j,
+        cfg.max_correspondence_voxels * pre_i.voxel_size,
+        normals_i=pre_i.fine_normals,
+        normals_j=pre_j.fine_normals,
+        min_normal_cos=cfg.min_normal_cos,
+        tree_i=pre_i.fine_tree(),
+        tree_j=pre_j.fine_tree(),
+    )
+    n = cfg.max_correspondences_per_pair
+    if n is not None and len(idx_i) > n:
+        keep = np.linspace(0, len(idx_i) - 1, n).round().astype(np.int64)
+        idx_i, idx_j = idx_i[keep], idx_j[keep]
+    return idx_i, idx_j
+
+
+def build_tracks(
+    pre: Sequence[PreprocessedScan],
+    results: Sequence[PairResult],
+    cfg: TracksConfig | None = None,
+    pair_weights: Sequence[float] | None = None,
+) -> Tracks:
+    """Correspondences of the accepted pairs among ``results`` -> :class:`Tracks`.
+
+    ``pair_weights`` (one per accepted result, default 1) weight the observations.
+    """
+    cfg = cfg or TracksConfig()
+    accepted = [r for r in results if r.accepted]
+    corr, distances = [], []
+    with single_threaded_blas():
+        for r in accepted:
+            idx_i, idx_j = pair_correspondences(pre[r.i], pre[r.j], r.T_i_j, cfg)
+            moved = transform_points(r.T_i_j, pre[r.j].fine_points[idx_j])
+            corr.append((idx_i, idx_j))
+            distances.append(np.linalg.norm(pre[r.i].fine_points[idx_i] - moved, axis=1))
+    pairs = np.array([(r.i, r.j) for r in accepted], dtype=np.int64).reshape(-1, 2)
+    return tracks_from_correspondences(
+        [p.fine_points for p in pre],
+        [p.name for p in pre],
+        pairs,
+        corr,
+        pair_weights,
+        distances=distances,
+        split_conflicts=cfg.split_conflicting_tracks,
+    )
+
+
+def tracks_from_correspondences(
+    points: Sequence[np.ndarray],
+    names: Sequence[str],
+    pairs: np.ndarray,
+    correspondences: Sequence[tuple[np.ndarray, np.ndarray]],
+    pair_weights: Sequence[float] | np.ndarray | None = None,
+    *,
+    distances: Sequence[np.ndarray] | None = None,
+    split_conflicts: bool = True,
+) -> Tracks:
+    """Union-find over point correspondences -> :class:`Tracks` (see the module docstring).
+
+    Args:
+        points: per scan, (N_s, 3) float64 local coordinates of the matchable points.
+        names: per scan, its name (the patch name).
+        pairs: (P, 2) scan indices (i, j) of each pair.
+        correspondences: per pair, (idx_i, idx_j) point indices into points[i], points[j].
+        pair_weights: (P,) >= 0, default 1; pairs of weight 0 are left out.
+        distances: per pair, (C,) length of each correspondence (after alignment); sets
+            the order in which links of a conflicting track are taken (default: as given).
+        split_conflicts: split tracks that see a scan twice (True) or drop them.
+    """
+    from mvreg.solver.problem import PatchProblem
+
+    m = len(points)
+    pairs = np.asarray(pairs, dtype=np.int64).reshape(-1, 2)
+    p_count = len(pairs)
+    weights = np.ones(p_count) if pair_weights is None else np.asarray(pair_weights, float)
+    if weights.shape != (p_count,):
+        raise ValueError(f"{weights.shape[0]} pair weights for {p_count} pairs")
+    offsets = np.concatenate([[0], np.cumsum([len(p) for p in points])]).astype(np.int64)
+    counts = np.array([len(c[0]) for c in correspondences], dtype=np.int64)
+    use = [k for k in range(p_count) if weights[k] > 0 and counts[k] > 0]
+    if use:
+        a = np.concatenate([offsets[pairs[k, 0]] + correspondences[k][0] for k in use])
+        b = np.concatenate([offsets[pairs[k, 1]] + correspondences[k][1] for k in use])
+        edge_pair = np.concatenate([np.full(counts[k], k, np.int64) for k in use])
+        edge_len = (
+            np.concatenate([np.asarray(distances[k], float) for k in use])
+            if distances is not None
+            else np.zeros(len(a))
+        )
+    else:
+        a = b = edge_pair = np.zeros(0, np.int64)
+        edge_len = np.zeros(0)
+
+    # Union-find as connected components of the graph on the linked points only.
+    verts, inv = np.unique(np.concatenate([a, b]), return_inverse=True)
+    ea, eb = inv[: len(a)], inv[len(a) :]
+    nv = len(verts)
+    if nv:
+        graph = sp.coo_matrix((np.ones(len(ea)), (ea, eb)), shape=(nv, nv))
+        num_labels, label = connected_components(graph, directed=False)
+    else:
+        num_labels, label = 0, np.zeros(0, np.int64)
+    vert_scan = np.searchsorted(offsets, verts, side="right") - 1
+    # A track seeing one scan twice: some (label, scan) occurs more than once.
+    uniq, key_count = np.unique(label * m + vert_scan, return_counts=True)
+    bad = np.zeros(num_labels, bool)
+    bad[uniq[key_count > 1] // m] = True
+    num_conflicting = int(bad.sum())
+    refused = 0
+    if num_conflicting and split_conflicts:
+        label, refused = _split_conflicts(label, num_labels, bad, ea, eb, edge_len, vert_scan)
+    elif num_conflicting:
+        label = np.where(bad[label], -1, label)
+    # Tracks are the labels held by two or more points; ids in order of first point.
+    size = np.bincount(label[label >= 0], minlength=1)
+    keep_vert = label >= 0
+    keep_vert[keep_vert] = size[label[keep_vert]] >= 2
+    kept_labels, first_vert = np.unique(label[keep_vert], return_index=True)
+    node_of_label = np.full(int(label.max()) + 1 if nv else 0, -1, np.int64)
+    node_of_label[kept_labels[np.argsort(first_vert, kind="stable")]] = np.arange(len(kept_labels))
+    obs_vert = np.flatnonzero(keep_vert)  # observations = kept points, in point-id order
+    obs_of_vert = np.full(nv, -1, np.int64)
+    obs_of_vert[obs_vert] = np.arange(len(obs_vert))
+    obs_scan = vert_scan[obs_vert]
+    obs_point = verts[obs_vert] - offsets[obs_scan]
+    obs_node = node_of_label[label[obs_vert]]
+    all_points = np.vstack([np.asarray(p, dtype=np.float64).reshape(-1, 3) for p in points])
+    coords = all_points[verts[obs_vert]]
+    link_keep = keep_vert[ea] & (label[ea] == label[eb])  # refused links join two tracks
+    link_obs = np.stack([obs_of_vert[ea[link_keep]], obs_of_vert[eb[link_keep]]], axis=1)
+    link_pair = edge_pair[link_keep]
+    weight = np.zeros(len(obs_vert))
+    for end in (0, 1):
+        np.maximum.at(weight, link_obs[:, end], weights[link_pair])
+    # The first link (lowest index) touching each observation names its pair.
+    ends = link_obs.T.ravel()
+    link_idx = np.tile(np.arange(len(link_obs)), 2)
+    order = np.lexsort((link_idx, ends))
+    _, first = np.unique(ends[order], return_index=True)
+    obs_pair = link_pair[link_idx[order[first]]]
+
+    # The largest set of scans connected through tracks.
+    scan_graph = sp.coo_matrix(
+        (np.ones(len(obs_scan)), (obs_scan, m + obs_node)),
+        shape=(m + len(kept_labels), m + len(kept_labels)),
+    )
+    _, comp = connected_components(scan_graph, directed=False)
+    comp = comp[:m]
+    seen = np.bincount(obs_scan, minlength=m) > 0
+    problem, patch_scans, problem_obs = None, np.zeros(0, np.int64), np.zeros(0, np.int64)
+    if seen.any():
+        sizes = np.bincount(comp[seen], minlength=comp.max() + 1)
+        best = int(np.argmax(sizes))  # ties: lowest label, i.e. the component of scan 0 first
+        patch_scans = np.flatnonzero((comp == best) & seen)
+        patch_of_scan = np.full(m, -1, np.int64)
+        patch_of_scan[patch_scans] = np.arange(len(patch_scans))
+        problem_obs = np.flatnonzero(patch_of_scan[obs_scan] >= 0)
+        problem = PatchProblem(
+            coords=coords[problem_obs],
+            patch=patch_of_scan[obs_scan[problem_obs]],
+            node=obs_node[problem_obs],
+            weight=weight[problem_obs],
+            patch_names=[str(names[s]) for s in patch_scans],
+            check_well_posed=False,  # connected by construction; rigidity: the solver's job
+        )
+    in_problem = set(patch_scans.tolist())
+    unconnected = [str(names[s]) for s in range(m) if s not in in_problem]
+    return Tracks(
+        scan_names=[str(n) for n in names],
+        obs_scan=obs_scan,
+        obs_point=obs_point,
+        obs_node=obs_node,
+        coords=coords,
+        weight=weight,
+        obs_pair=obs_pair,
+        link_obs=link_obs,
+        link_pair=link_pair,
+        pairs=pairs,
+        pair_weights=weights,
+        pair_num_correspondences=counts,
+        num_tracks=int(len(kept_labels)),
+        num_conflicting_tracks=num_conflicting,
+        num_dropped_tracks=0 if split_conflicts else num_conflicting,
+        num_refused_links=int(refused),
+        num_dropped_observations=int(np.count_nonzero(~keep_vert)),
+        patch_scans=patch_scans,
+        problem_observations=problem_obs,
+        unconnected_scans=unconnected,
+        problem=problem,
+        _inputs=(
+            list(points), list(names), pairs, list(correspondences), weights,
+            None if distances is None else list(distances), split_conflicts,
+        ),
+    )  # fmt: skip
+
+
+def _split_conflicts(label, num_labels, bad, ea, eb, edge_len, vert_scan):
+    """Greedy union-find (shortest links first) inside the conflicting components.
+
+    A link is refused when the two partial tracks already share a scan. Returns new labels
+    (conflicting components get fresh ids >= num_labels) and the number of refused links.
+    """
+    label = label.copy()
+    verts = np.flatnonzero(bad[label])
+    local = np.full(len(label), -1, np.int64)
+    local[verts] = np.arange(len(verts))
+    edges = np.flatnonzero(bad[label[ea]])
+    edges = edges[np.argsort(edge_len[edges], kind="stable")]
+    parent = list(range(len(verts)))
+    scans = [1 << int(s) for s in vert_scan[verts]]
+    refused = 0
+    for u, w in zip(local[ea[edges]].tolist(), local[eb[edges]].tolist(), strict=True):
+        while parent[u] != u:
+            parent[u] = u = parent[parent[u]]
+        while parent[w] != w:
+            parent[w] = w = parent[parent[w]]
+        if u == w:
+            continue
+        if scans[u] & scans[w]:
+            refused += 1
+            continue
+        if u > w:
+            u, w = w, u
+        parent[w] = u
+        scans[u] |= scans[w]
+    roots = np.array(parent, dtype=np.int64)
+    while True:  # full path compression, vectorised
+        nxt = roots[roots]
+        if np.array_equal(nxt, roots):
+            break
+        roots = nxt
+    label[verts] = num_labels + roots
+    return label, refused

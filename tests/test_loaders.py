@@ -1,0 +1,263 @@
+"""Scan loaders: every format round-trips, every bad file is named in its error."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import open3d as o3d
+import pytest
+
+from mvreg.errors import InputError, ScanFileError
+from mvreg.io.loaders import (
+    Scan,
+    ScanLoader,
+    list_scan_files,
+    load_scan,
+    load_scans,
+    natural_key,
+    register_loader,
+    supported_suffixes,
+)
+from mvreg.io.loaders.base import RawCloud
+
+
+def _cloud(n: int = 200, seed: int = 0):
+    rng = np.random.default_rng(seed)
+    points = rng.normal(size=(n, 3)) * [1.0, 2.0, 0.5] + [10.0, -3.0, 7.0]
+    normals = rng.normal(size=(n, 3))
+    normals /= np.linalg.norm(normals, axis=1, keepdims=True)
+    colors = rng.uniform(size=(n, 3))
+    return points, normals, colors
+
+
+def _write_o3d(path: Path, points, normals=None, colors=None, **kwargs) -> Path:
+    pcd = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(points))
+    if normals is not None:
+        pcd.normals = o3d.utility.Vector3dVector(normals)
+    if colors is not None:
+        pcd.colors = o3d.utility.Vector3dVector(colors)
+    assert o3d.io.write_point_cloud(str(path), pcd, **kwargs)
+    return path
+
+
+# (suffix, has normals, has colors, float tolerance of the format)
+FORMATS = [
+    (".ply", True, True, 1e-12),
+    (".pcd", True, True, 1e-5),  # open3d writes PCD as float32
+    (".xyz", False, False, 1e-8),
+    (".xyzn", True, False, 1e-8),
+    (".xyzrgb", False, True, 1e-8),
+    (".pts", False, True, 1e-8),
+]
+
+
+@pytest.mark.parametrize(("suffix", "has_normals", "has_colors", "tol"), FORMATS)
+def test_open3d_formats_round_trip(tmp_path, suffix, has_normals, has_colors, tol):
+    points, normals, colors = _cloud()
+    path = _write_o3d(tmp_path / f"scan{suffix}", points, normals, colors)
+    scan = load_scan(path)
+    assert isinstance(scan, Scan)
+    assert scan.name == f"scan{suffix}" and scan.path == path
+    assert scan.points.shape == (200, 3) and scan.points.dtype == np.float64
+    np.testing.assert_allclose(scan.points, points, atol=tol * 20)
+    assert (scan.normals is not None) == has_normals
+    if has_normals:
+        np.testing.assert_allclose(scan.normals, normals, atol=1e-5)
+    assert (scan.colors is not None) == has_colors
+    if has_colors:
+        np.testing.assert_allclose(scan.colors, colors, atol=1 / 255 + 1e-6)
+    assert scan.num_dropped_nonfinite == 0
+
+
+def test_binary_ply_and_pcd_round_trip(tmp_path):
+    points, _, _ = _cloud()
+    for suffix in (".ply", ".pcd"):
+        path = _write_o3d(tmp_path / f"bin{suffix}", points, write_ascii=False)
+        np.testing.assert_allclose(load_scan(path).points, points, atol=1e-4)
+
+
+def test_npy_variants(tmp_path):
+    points, normals, colors = _cloud()
+    np.save(tmp_path / "a.npy", points)
+    np.save(tmp_path / "b.npy", np.hstack([points, normals]))
+    np.save(tmp_path / "c.npy", np.hstack([points, colors * 255.0]))
+    np.save(tmp_path / "d.npy", np.hstack([points, colors]).astype(np.float32))
+    a, b, c, d = (load_scan(tmp_path / f"{k}.npy") for k in "abcd")
+    np.testing.assert_array_equal(a.points, points)
+    assert a.normals is None and a.colors is None
+    np.testing.assert_array_equal(b.normals, normals)
+    assert b.colors is None
+    np.testing.assert_allclose(c.colors, colors)
+    assert c.normals is None
+    np.testing.assert_allclose(d.colors, colors, atol=1e-6)
+
+
+def test_nan_rows_are_dropped_and_counted(tmp_path):
+    points, _, _ = _cloud()
+    points[[3, 50, 51]] = np.nan
+    points[7, 2] = np.inf
+    np.save(tmp_path / "holes.npy", points)
+    scan = load_scan(tmp_path / "holes.npy")
+    assert scan.num_points == 196 and scan.num_dropped_nonfinite == 4
+    assert np.all(np.isfinite(scan.points))
+    assert "dropped_nonfinite=4" in repr(scan)
+    (tmp_path / "holes.xyz").write_text("nan nan nan\n" + "".join(f"{i} 1 2\n" for i in range(150)))
+    scan = load_scan(tmp_path / "holes.xyz")
+    assert scan.num_points == 150 and scan.num_dropped_nonfinite == 1
+
+
+def _ply_header(n: int, fmt: str = "ascii") -> str:
+    return (
+        f"ply\nformat {fmt} 1.0\nelement vertex {n}\n"
+        "property float x\nproperty float y\nproperty float z\nend_header\n"
+    )
+
+
+BAD_FILES = {
+    "empty.ply": (b"", "empty file"),
+    "truncated.ply": (
+        (_ply_header(300) + "".join(f"{i} 1 2\n" for i in range(120)) + "4 5\n").encode(),
+        "truncated PLY",
+    ),
+    "cut_line.ply": (
+        (_ply_header(150) + "".join(f"{i} 1 2\n" for i in range(149)) + "4 5").encode(),
+        "incomplete",
+    ),
+    "truncated_binary.ply": (
+        _ply_header(300, "binary_little_endian").encode() + np.zeros((100, 3), "<f4").tobytes(),
+        "truncated PLY",
+    ),
+    "garbage.ply": (b"\x00\x01garbage" * 64, "not a PLY file"),
+    "no_vertices.ply": (_ply_header(0).encode(), "no vertices"),
+    "header_only.ply": (b"ply\nformat ascii 1.0\nelement vertex 10\n", "corrupt header"),
+    "nan_only.xyz": (b"nan nan nan\n" * 300, "NaN"),
+    "few.xyz": (b"".join(f"{i} 0 1\n".encode() for i in range(20)), "fewer than the minimum"),
+    "unparsable.xyz": (b"hello world\nthis is not a scan\n" * 20, "no points"),
+    "wrong_shape.npy": (None, "expected an (N, 3) or (N, 6)"),
+    "not_numpy.npy": (b"this is no npy file" * 10, "cannot read"),
+    "truncated.pcd": (
+        b"VERSION 0.7\nFIELDS x y z\nSIZE 4 4 4\nTYPE F F F\nCOUNT 1 1 1\nWIDTH 500\n"
+        b"HEIGHT 1\nVIEWPOINT 0 0 0 1 0 0 0\nPOINTS 500\nDATA binary\n" + bytes(120),
+        "truncated PCD",
+    ),
+}
+
+
+@pytest.mark.parametrize("name", sorted(BAD_FILES))
+def test_bad_files_raise_naming_the_file(tmp_path, name):
+    content, reason = BAD_FILES[name]
+    path = tmp_path / name
+    if content is None:
+        np.save(path, np.zeros((300, 4)))
+    else:
+        path.write_bytes(content)
+    with pytest.raises(ScanFileError) as info:
+        load_scan(path)
+    assert info.value.path == str(path)
+    assert str(path) in str(info.value)
+    assert reason in info.value.reason
+
+
+def test_missing_and_unsupported_files(tmp_path):
+    with pytest.raises(ScanFileError, match="no such file"):
+        load_scan(tmp_path / "missing.ply")
+    (tmp_path / "notes.txt").write_text("1 2 3\n")
+    with pytest.raises(ScanFileError, match="unsupported file type '.txt'"):
+        load_scan(tmp_path / "notes.txt")
+
+
+def test_min_points_is_configurable(tmp_path):
+    points, _, _ = _cloud(30)
+    np.save(tmp_path / "small.npy", points)
+    with pytest.raises(ScanFileError, match="only 30 valid points"):
+        load_scan(tmp_path / "small.npy")
+    assert load_scan(tmp_path / "small.npy", min_points=10).num_points == 30
+
+
+def test_folder_listing_natural_order_ignores_other_files(tmp_path):
+    points, _, _ = _cloud()
+    for name in ("scan_10.npy", "scan_2.npy", "Scan_1.ply", "scan_9.xyz"):
+        path = tmp_path / name
+        if path.suffix == ".npy":
+            np.save(path, points)
+        else:
+            _write_o3d(path, points)
+    for name in ("ground_truth.json", "synth.json", "timestamps.txt", ".hidden.ply"):
+        (tmp_path / name).write_text("{}")
+    (tmp_path / "sub.ply").mkdir()
+    files = list_scan_files(tmp_path)
+    assert [p.name for p in files] == ["Scan_1.ply", "scan_2.npy", "scan_9.xyz", "scan_10.npy"]
+    scans = load_scans(tmp_path)
+    assert [s.name for s in scans] == [p.name for p in files]
+    assert [s.name for s in load_scans(files[:2])] == ["Scan_1.ply", "scan_2.npy"]
+    assert sorted(["a10", "a9", "a10b", "A1"], key=natural_key) == ["A1", "a9", "a10", "a10b"]
+
+
+def test_folder_errors(tmp_path):
+    (tmp_path / "readme.txt").write_text("no scans here")
+    with pytest.raises(InputError, match="no scan files found") as info:
+        load_scans(tmp_path)
+    assert str(tmp_path) in str(info.value)
+    with pytest.raises(InputError, match="not a folder"):
+        list_scan_files(tmp_path / "nope")
+    with pytest.raises(InputError, match="no scan files given"):
+        load_scans([])
+
+
+def test_one_bad_file_in_a_folder_is_named(tmp_path):
+    points, _, _ = _cloud()
+    np.save(tmp_path / "a.npy", points)
+    (tmp_path / "b.ply").write_bytes(b"")
+    with pytest.raises(ScanFileError) as info:
+        load_scans(tmp_path)
+    assert info.value.path == str(tmp_path / "b.ply")
+
+
+def test_pcd_viewpoint_becomes_sensor_origin(tmp_path):
+    points, _, _ = _cloud()
+    path = tmp_path / "view.pcd"
+    body = "".join(f"{x:.6f} {y:.6f} {z:.6f}\n" for x, y, z in points)
+    header = (
+        "VERSION 0.7\nFIELDS x y z\nSIZE 4 4 4\nTYPE F F F\nCOUNT 1 1 1\n"
+        f"WIDTH {len(points)}\nHEIGHT 1\nVIEWPOINT 1.5 -2 3 1 0 0 0\n"
+        f"POINTS {len(points)}\nDATA ascii\n"
+    )
+    path.write_text(header + body)
+    scan = load_scan(path)
+    np.testing.assert_allclose(scan.sensor_origin, [1.5, -2.0, 3.0])
+    np.testing.assert_allclose(scan.points, points, atol=1e-5)
+    # The default viewpoint says nothing about the sensor.
+    default = _write_o3d(tmp_path / "default.pcd", points)
+    assert load_scan(default).sensor_origin is None
+
+
+def test_registry_accepts_new_loaders(tmp_path):
+    class CsvLoader:
+        suffixes = (".csvpts",)
+
+        def read(self, path: Path) -> RawCloud:
+            return RawCloud(np.loadtxt(path, delimiter=",").reshape(-1, 3))
+
+    assert isinstance(CsvLoader(), ScanLoader)
+    register_loader(CsvLoader())
+    try:
+        points, _, _ = _cloud()
+        np.savetxt(tmp_path / "x.csvpts", points, delimiter=",")
+        np.testing.assert_allclose(load_scan(tmp_path / "x.csvpts").points, points)
+        assert ".csvpts" in supported_suffixes()
+    finally:
+        from mvreg.io import loaders
+
+        loaders._REGISTRY.pop(".csvpts", None)
+    with pytest.raises(TypeError):
+        register_loader(object())
+
+
+def test_bunny_scans_load(shared_data):
+    folder = shared_data / "stanford_bunny_scans"
+    scans = load_scans(folder)
+    assert [s.name for s in scans][:3] == ["bun000.ply", "bun045.ply", "bun090.ply"]
+    assert len(scans) == 10  # bun.conf and README are not scans
+    assert all(30000 <= s.num_points <= 41000 for s in scans)
+    assert scans[0].num_points == 40256 and scans[0].num_dropped_nonfinite == 0

@@ -1,0 +1,191 @@
+"""`mvreg register` end to end: accuracy on the real bunny scans, outputs, bad input."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import numpy as np
+import pytest
+from scipy.spatial.transform import Rotation
+from typer.testing import CliRunner
+
+from mvreg.cli import app
+from mvreg.io.poses import read_poses_json, read_poses_kitti, read_poses_tum
+from mvreg.metrics import pose_errors
+from tests.conftest import require_shared
+
+runner = CliRunner()
+
+
+def bunny_truth(folder: Path) -> dict[str, np.ndarray]:
+    """bun.conf: p_world = R(q)^T p + t, q = (qx, qy, qz, qw) (see shared/data/README.md)."""
+    truth = {}
+    for line in (folder / "bun.conf").read_text().splitlines():
+        p = line.split()
+        if not p or p[0] != "bmesh":
+            continue
+        T = np.eye(4)
+        T[:3, :3] = Rotation.from_quat([float(v) for v in p[5:9]]).as_matrix().T
+        T[:3, 3] = [float(v) for v in p[2:5]]
+        truth[p[1]] = T
+    return truth
+
+
+@pytest.fixture(scope="module")
+def bunny_run(tmp_path_factory):
+    folder = require_shared() / "stanford_bunny_scans"
+    out = tmp_path_factory.mktemp("bunny") / "out"
+    r = runner.invoke(app, ["register", str(folder), "--out", str(out), "--seed", "0"])
+    assert r.exit_code == 0, r.output
+    return folder, out
+
+
+def test_bunny_all_registered_within_targets(bunny_run):
+    folder, out = bunny_run
+    est = read_poses_json(out / "poses.json")
+    truth = bunny_truth(folder)
+    assert sorted(est) == sorted(truth)
+    names = sorted(truth)
+    err = pose_errors(np.stack([est[n] for n in names]), np.stack([truth[n] for n in names]))
+    # Issue targets: rotation max <= 0.3 deg, translation max <= 0.6 mm against bun.conf.
+    assert err.rotation_deg.max() <= 0.3, err.rotation_deg
+    assert err.translation.max() <= 0.6e-3, err.translation
+    report = json.loads((out / "report.json").read_text())
+    assert report["unregistered"] == []
+    assert report["certificate"]["certified"] is True
+    # Overlap residual no larger than that of bun.conf's own alignment (same metric).
+    ours = report["overlap_residual"]["mean"]
+    assert ours > 0
+
+
+def test_bunny_overlap_residual_matches_reference(bunny_run):
+    folder, out = bunny_run
+    from mvreg.geometry import transform_points
+    from mvreg.io.loaders import load_scan
+    from mvreg.metrics import overlap_residual
+
+    est = read_poses_json(out / "poses.json")
+    truth = bunny_truth(folder)
+    names = sorted(truth)
+    pts = {n: load_scan(folder / n).points for n in names}
+    a = overlap_residual([transform_points(est[n], pts[n]) for n in names], 5e-4)
+    b = overlap_residual([transform_points(truth[n], pts[n]) for n in names], 5e-4)
+    assert a["mean"] <= 1.01 * b["mean"], (a["mean"], b["mean"])
+    assert 0.2e-3 < b["median"] < 0.3e-3  # the data README's 0.23-0.29 mm
+
+
+def test_outputs_parse_back(bunny_run):
+    import open3d as o3d
+
+    from mvreg.viz import RecordingFile
+
+    _, out = bunny_run
+    est = read_poses_json(out / "poses.json")
+    names = list(est)
+    _, tum = read_poses_tum(out / "poses_tum.txt")
+    kitti = read_poses_kitti(out / "poses_kitti.txt")
+    for n, a, b in zip(names, tum, kitti, strict=True):
+        assert np.allclose(a, est[n], atol=1e-12)
+        assert np.array_equal(b, est[n])  # full precision round trip
+    assert np.allclose(est[names[0]], np.eye(4), atol=1e-12)  # first scan = world frame
+    cloud = o3d.io.read_point_cloud(str(out / "merged.ply"))
+    assert len(cloud.points) > 10_000 and cloud.has_colors()
+    report = json.loads((out / "report.json").read_text())
+    assert report["config"]["seed"] == 0 and report["voxel_size"] > 0
+    assert len(report["pairs"]) == 45 and {"final_weight", "overlap_ratio"} <= set(
+        report["pairs"][0]
+    )
+    rec = RecordingFile(out / "recording.rrd")
+    assert rec.has("world/scans/bun000.ply")
+    assert sum(e.startswith("/raw/") for e in rec.entities) == 10
+    assert rec.has("residual_heatmap/merged")
+    steps, values = rec.scalars("solver/objective", "solver_iteration")
+    assert len(steps) >= 2 and np.all(np.isfinite(values))  # one point per global solve at least
+    assert not list(out.glob(".*"))  # no temporary files left behind
+
+
+def test_refuses_to_overwrite_without_force(bunny_run):
+    folder, out = bunny_run
+    r = runner.invoke(app, ["register", str(folder), "--out", str(out)])
+    assert r.exit_code == 2
+    assert "--force" in r.output
+
+
+def _few_bunny_scans(tmp_path: Path, names=("bun000.ply", "bun045.ply", "bun315.ply")) -> Path:
+    from mvreg.io.loaders import load_scan
+
+    folder = require_shared() / "stanford_bunny_scans"
+    d = tmp_path / "scans"
+    d.mkdir()
+    for n in names:
+        np.save(d / (Path(n).stem + ".npy"), load_scan(folder / n).points[::2])
+    return d
+
+
+def test_same_seed_same_poses(tmp_path):
+    scans = _few_bunny_scans(tmp_path)
+    outs = []
+    for k in range(2):
+        r = runner.invoke(
+            app,
+            ["register", str(scans), "--out", str(tmp_path / f"o{k}"), "--no-rrd", "--seed", "3"],
+        )
+        assert r.exit_code == 0, r.output
+        outs.append(read_poses_json(tmp_path / f"o{k}" / "poses.json"))
+    for n in outs[0]:
+        assert np.array_equal(outs[0][n], outs[1][n])
+
+
+def test_scan_without_overlap_is_reported_unregistered(tmp_path):
+    scans = _few_bunny_scans(tmp_path)
+    rng = np.random.default_rng(0)
+    np.save(scans / "zz_noise.npy", rng.uniform(-1, 1, size=(5000, 3)) * [0.1, 0.1, 0.001] + 5.0)
+    out = tmp_path / "out"
+    r = runner.invoke(app, ["register", str(scans), "--out", str(out), "--no-rrd"])
+    assert r.exit_code == 3, r.output
+    report = json.loads((out / "report.json").read_text())
+    assert report["unregistered"] == ["zz_noise.npy"]
+    assert "zz_noise.npy" not in read_poses_json(out / "poses.json")
+
+
+@pytest.mark.parametrize(
+    ("setup", "message"),
+    [
+        ("empty_folder", "no scan files"),
+        ("single_scan", "at least 2 scans"),
+        ("empty_file", "empty.ply"),
+        ("corrupt_ply", "corrupt.ply"),
+        ("nan_only", "nan.npy"),
+    ],
+)
+def test_bad_input_gives_one_line_and_exit_2(tmp_path, setup, message):
+    d = tmp_path / "in"
+    d.mkdir()
+    good = np.random.default_rng(0).uniform(size=(500, 3))
+    if setup == "single_scan":
+        np.save(d / "a.npy", good)
+    elif setup == "empty_file":
+        np.save(d / "a.npy", good)
+        (d / "empty.ply").write_bytes(b"")
+    elif setup == "corrupt_ply":
+        np.save(d / "a.npy", good)
+        (d / "corrupt.ply").write_bytes(
+            b"ply\nformat ascii 1.0\nelement vertex 10\nproperty float x\nend_header\n1 2\n"
+        )
+    elif setup == "nan_only":
+        np.save(d / "a.npy", good)
+        np.save(d / "nan.npy", np.full((500, 3), np.nan))
+    r = runner.invoke(app, ["register", str(d), "--out", str(tmp_path / "out")])
+    assert r.exit_code == 2, r.output
+    assert message in r.output
+    assert "Traceback" not in r.output
+    assert not (tmp_path / "out" / "poses.json").exists()
+
+
+def test_absurd_parameters(tmp_path):
+    d = _few_bunny_scans(tmp_path)
+    r = runner.invoke(app, ["register", str(d), "--out", str(tmp_path / "o"), "--solver", "magic"])
+    assert r.exit_code == 2 and "unknown solver" in r.output
+    r = runner.invoke(app, ["register", str(d), "--out", str(tmp_path / "o"), "--voxel-size", "0"])
+    assert r.exit_code == 2

@@ -57,9 +57,15 @@ class RefineConfig(BaseModel):
 
     rounds: int = Field(3, ge=0, description="--refine N")
     distance_voxels: tuple[float, ...] = Field(
-        (1.0, 0.6, 0.4), description="correspondence distance / feature voxel, per round"
+        (1.0, 0.6, 0.3), description="correspondence distance / feature voxel, per round"
     )
     min_correspondences: int = Field(30, ge=3)
+    dense_voxel_ratio: float | None = Field(
+        0.25,
+        gt=0,
+        description="the last round uses the raw scans resampled at this fraction of the "
+        "feature voxel (denser correspondences, less sampling bias); None: fine points",
+    )
 
 
 class OutputConfig(BaseModel):

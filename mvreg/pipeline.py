@@ -170,7 +170,7 @@ def register(
         sol, weights, robust_log = robust_rounds(tracks, sol, voxel, cfg, callback=on_iteration)
         timed("robust")
         prog.stage("refinement", cfg.refine.rounds)
-        sol, refine_log = refine_rounds(pre, sol, cfg, callback=on_iteration)
+        sol, refine_log = refine_rounds(pre, sol, cfg, callback=on_iteration, scans=scans)
         timed("refine")
     prog.done()
 

@@ -12,7 +12,7 @@ import numpy as np
 
 from mvreg.config import RegisterConfig, RobustConfig
 from mvreg.geometry import invert_transform, transform_points
-from mvreg.pairwise import PreprocessedScan, Tracks, TracksConfig, pair_correspondences
+from mvreg.pairwise import PreprocessedScan, Tracks, mutual_correspondences
 from mvreg.pairwise.tracks import tracks_from_correspondences
 from mvreg.solver import SolveResult, solve
 from mvreg.solver.reg_admm import IterationRecord
@@ -160,31 +160,67 @@ def overlapping_pairs(
     return out
 
 
+def _dense_levels(scans, pre, voxel: float):
+    """Raw scans resampled at ``voxel``: (points, normals, KD-trees) per scan."""
+    from scipy.spatial import cKDTree
+
+    from mvreg.pairwise import resample
+
+    pts, nrm, trees = [], [], []
+    for scan, p in zip(scans, pre, strict=True):
+        q, n = resample(scan, p, voxel)
+        pts.append(q)
+        nrm.append(n)
+        trees.append(cKDTree(q))
+    return pts, nrm, trees
+
+
 def refine_rounds(
     pre: Sequence[PreprocessedScan],
     sol: GlobalSolution,
     cfg: RegisterConfig,
     callback: Callable | None = None,
+    scans: Sequence | None = None,
 ) -> tuple[GlobalSolution, list[dict]]:
     """Multiview ICP: correspondences of all overlapping scans under the global poses,
-    tracks, global re-solve warm-started; ``cfg.refine.rounds`` times, shrinking distance."""
+    tracks, global re-solve warm-started; ``cfg.refine.rounds`` times, shrinking distance.
+
+    With ``scans`` and ``cfg.refine.dense_voxel_ratio``, the last round matches the raw
+    scans resampled at that fraction of the feature voxel instead of the fine points.
+    """
     log = []
     voxel = pre[0].voxel_size
     names = [p.name for p in pre]
-    points = [p.fine_points for p in pre]
-    for k in range(cfg.refine.rounds):
+    rounds = cfg.refine.rounds
+    for k in range(rounds):
         dist_v = cfg.refine.distance_voxels[min(k, len(cfg.refine.distance_voxels) - 1)]
-        tcfg = TracksConfig(**{**cfg.tracks.model_dump(), "max_correspondence_voxels": dist_v})
+        dense = k == rounds - 1 and scans is not None and cfg.refine.dense_voxel_ratio is not None
+        if dense:
+            points, normals, trees = _dense_levels(scans, pre, cfg.refine.dense_voxel_ratio * voxel)
+        else:
+            points = [p.fine_points for p in pre]
+            normals = [p.fine_normals for p in pre]
+            trees = [p.fine_tree() for p in pre]
         pairs, corr, dists = [], [], []
         for i, j in overlapping_pairs(pre, sol.T_world_scan, dist_v * voxel):
             T_i_j = invert_transform(sol.T_world_scan[i]) @ sol.T_world_scan[j]
-            idx_i, idx_j = pair_correspondences(pre[i], pre[j], T_i_j, tcfg)
+            idx_i, idx_j = mutual_correspondences(
+                points[i],
+                points[j],
+                T_i_j,
+                dist_v * voxel,
+                normals_i=normals[i],
+                normals_j=normals[j],
+                min_normal_cos=cfg.tracks.min_normal_cos,
+                tree_i=trees[i],
+                tree_j=trees[j],
+            )
             if len(idx_i) < cfg.refine.min_correspondences:
                 continue
-            moved = transform_points(T_i_j, pre[j].fine_points[idx_j])
+            moved = transform_points(T_i_j, points[j][idx_j])
             pairs.append((i, j))
             corr.append((idx_i, idx_j))
-            dists.append(np.linalg.norm(pre[i].fine_points[idx_i] - moved, axis=1))
+            dists.append(np.linalg.norm(points[i][idx_i] - moved, axis=1))
         if not pairs:
             break
         pairs_arr = np.array(pairs, dtype=np.int64)
@@ -205,6 +241,7 @@ def refine_rounds(
             {
                 "round": k + 1,
                 "distance_voxels": dist_v,
+                "dense": bool(dense),
                 "pairs": len(pairs),
                 "observations": int(tracks.problem.num_observations),
                 "pair_residual_median": float(np.median(med)),

@@ -26,7 +26,6 @@ from mvreg.pairwise import (
     candidate_pairs,
     derive_voxel_size,
     mutual_correspondences,
-    preprocess,
     resample,
     score_alignment,
     tracks_from_correspondences,
@@ -37,7 +36,7 @@ from mvreg.pairwise.align import (
     pair_seed,
     reject_relative_outliers,
 )
-from mvreg.pairwise.preprocess import outlier_mask, view_direction
+from mvreg.pairwise.preprocess import outlier_mask, preprocess, view_direction
 
 # ----------------------------------------------------------------------------- helpers
 

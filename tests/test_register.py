@@ -60,19 +60,41 @@ def test_bunny_all_registered_within_targets(bunny_run):
 
 
 def test_bunny_overlap_residual_matches_reference(bunny_run):
-    folder, out = bunny_run
+    """Mean nearest-neighbour distance between overlapping scans, ours vs bun.conf's.
+
+    Compared on the same points: those within 0.5 mm of another scan under both alignments
+    (a better alignment brings more points under the threshold, near it, which would raise
+    an unpaired mean; see docs/benchmarks/register.md for both).
+    """
+    from scipy.spatial import cKDTree
+
     from mvreg.geometry import transform_points
     from mvreg.io.loaders import load_scan
-    from mvreg.metrics import overlap_residual
 
+    folder, out = bunny_run
     est = read_poses_json(out / "poses.json")
     truth = bunny_truth(folder)
     names = sorted(truth)
     pts = {n: load_scan(folder / n).points for n in names}
-    a = overlap_residual([transform_points(est[n], pts[n]) for n in names], 5e-4)
-    b = overlap_residual([transform_points(truth[n], pts[n]) for n in names], 5e-4)
-    assert a["mean"] <= 1.01 * b["mean"], (a["mean"], b["mean"])
-    assert 0.2e-3 < b["median"] < 0.3e-3  # the data README's 0.23-0.29 mm
+
+    def nn_dist(poses):
+        world = [transform_points(poses[n], pts[n]) for n in names]
+        trees = [cKDTree(w) for w in world]
+        out = []
+        for i, w in enumerate(world):
+            q = w[::3]  # every third point queried against the full other scans
+            best = np.full(len(q), np.inf)
+            for j, t in enumerate(trees):
+                if j != i:
+                    best = np.minimum(best, t.query(q, distance_upper_bound=1e-3)[0])
+            out.append(best)
+        return np.concatenate(out)
+
+    a, b = nn_dist(est), nn_dist(truth)
+    both = (a < 0.5e-3) & (b < 0.5e-3)
+    assert both.mean() > 0.85
+    assert a[both].mean() <= 1.005 * b[both].mean(), (a[both].mean(), b[both].mean())
+    assert 0.2e-3 < np.median(b[b < 0.5e-3]) < 0.3e-3  # the data README's 0.23-0.29 mm
 
 
 def test_outputs_parse_back(bunny_run):

@@ -123,22 +123,29 @@ def write_registration(reg, out: str | Path) -> dict[str, Path]:
     return paths
 
 
-def residual_heatmap(reg, max_points: int = 200_000):
-    """Merged points and each point's distance to the nearest point of another scan."""
+def residual_heatmap(reg, max_points: int = 100_000, k: int = 12):
+    """Merged points (P, 3) and each point's distance (P,) to the nearest point of another
+    scan (inf when none within 4 feature voxels: no overlap there).
+
+    One KD-tree over all scans (subsampled to ``max_points``), k nearest neighbours with a
+    distance bound, the first one from another scan.
+    """
     from scipy.spatial import cKDTree
 
     idx = {s.name: i for i, s in enumerate(reg.scans)}
-    world = {n: transform_points(T, reg.scans[idx[n]].points) for n, T in reg.T_world_scan.items()}
-    trees = {n: cKDTree(p) for n, p in world.items()}
     rng = np.random.default_rng(0)
-    per = max(1, max_points // max(len(world), 1))
-    pts, res = [], []
-    for n, p in world.items():
-        q = p if len(p) <= per else p[rng.choice(len(p), per, replace=False)]
-        best = np.full(len(q), np.inf)
-        for m, t in trees.items():
-            if m != n:
-                best = np.minimum(best, t.query(q)[0])
-        pts.append(q)
-        res.append(best)
-    return np.concatenate(pts), np.concatenate(res)
+    per = max(1, max_points // max(len(reg.T_world_scan), 1))
+    pts, labels = [], []
+    for label, (n, T) in enumerate(reg.T_world_scan.items()):
+        p = reg.scans[idx[n]].points
+        if len(p) > per:
+            p = p[rng.choice(len(p), per, replace=False)]
+        pts.append(transform_points(T, p))
+        labels.append(np.full(len(p), label))
+    pts = np.concatenate(pts)
+    labels = np.concatenate(labels)
+    dist, nn = cKDTree(pts).query(pts, k=k, distance_upper_bound=4.0 * reg.voxel_size)
+    other = (nn < len(pts)) & (labels[np.minimum(nn, len(pts) - 1)] != labels[:, None])
+    first = np.argmax(other, axis=1)
+    res = np.where(other.any(axis=1), dist[np.arange(len(pts)), first], np.inf)
+    return pts, res

@@ -359,10 +359,10 @@ def view_direction(normals: np.ndarray, min_cos: float = 0.05) -> tuple[np.ndarr
     is the centre of the cone: the one whose small cosines with the normals are largest
     (a low quantile, past the share that faces no direction: mis-oriented normals). The
     mean normal would be biased towards large faces. Searched over 400 directions on the
-    sphere, then 400 within 12 degrees of the best, using at most 1000 of the normals.
+    sphere, then 400 within 12 degrees of the best, using about 500 of the normals.
     Returns ((3,) unit vector, share of all normals with cosine > ``min_cos``).
     """
-    sample = normals[:: max(1, len(normals) // 1000)]
+    sample = normals[:: max(1, len(normals) // 500)]
     n = len(sample)
     candidates = _DIRECTIONS
     for _ in range(2):

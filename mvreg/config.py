@@ -76,6 +76,9 @@ class OutputConfig(BaseModel):
     )
     rrd: bool = True
     max_points_per_scan_in_recording: int = Field(50_000, ge=100)
+    record_pair_correspondences: bool = Field(
+        True, description="log each pair's correspondences (capped) into the recording"
+    )
 
 
 class RegisterConfig(BaseModel):

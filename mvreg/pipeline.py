@@ -198,7 +198,31 @@ def register(
     if T:
         idx = [names_all.index(n) for n in T]
         rec.log_aligned(list(T), [scans[i].points for i in idx], list(T.values()))
+        if cfg.output.record_pair_correspondences and rec.enabled:
+            _record_pairs(rec, sol, names_all)
     return reg
+
+
+def _record_pairs(rec, sol: GlobalSolution, names: list[str]) -> None:
+    """Each pair's linked points of the final tracks, in the world frame."""
+    tr = sol.tracks
+    if len(tr.link_obs) == 0:
+        return
+    a, b = tr.link_obs[:, 0], tr.link_obs[:, 1]
+    for p, (i, j) in enumerate(tr.pairs):
+        if int(i) not in sol.T_world_scan or int(j) not in sol.T_world_scan:
+            continue
+        sel = tr.link_pair == p
+        if not np.any(sel):
+            continue
+        oa, ob = a[sel], b[sel]
+        # A link may be stored either way round: put scan i's end first.
+        swap = tr.obs_scan[oa] != i
+        oa, ob = np.where(swap, ob, oa), np.where(swap, oa, ob)
+        pa = transform_points(sol.T_world_scan[int(i)], tr.coords[oa])
+        pb = transform_points(sol.T_world_scan[int(j)], tr.coords[ob])
+        w = float(tr.pair_weights[p]) if len(tr.pair_weights) > p else None
+        rec.log_pair_correspondences(names[int(i)], names[int(j)], pa, pb, w)
 
 
 def _load(source, names, cfg, truth, prog):

@@ -122,6 +122,7 @@ def test_outputs_parse_back(bunny_run):
     assert rec.has("world/scans/bun000.ply")
     assert sum(e.startswith("/raw/") for e in rec.entities) == 10
     assert rec.has("residual_heatmap/merged")
+    assert any(e.startswith("/world/pairs/") for e in rec.entities)  # per-pair correspondences
     steps, values = rec.scalars("solver/objective", "solver_iteration")
     assert len(steps) >= 2 and np.all(np.isfinite(values))  # one point per global solve at least
     assert not list(out.glob(".*"))  # no temporary files left behind

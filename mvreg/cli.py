@@ -324,6 +324,14 @@ def register(
     ] = None,
     no_rrd: Annotated[bool, typer.Option("--no-rrd", help="Do not write a recording.")] = False,
     spawn: Annotated[bool, typer.Option(help="Open the rerun viewer (when installed).")] = False,
+    sequence: Annotated[
+        bool,
+        typer.Option(
+            "--sequence",
+            help="Scans taken one after another by a moving LiDAR: KISS-ICP odometry, "
+            "loop closures, then the global solve (timestamps from timestamps.txt or names).",
+        ),
+    ] = False,
     force: Annotated[bool, typer.Option(help="Overwrite existing results in OUT.")] = False,
 ):
     """Register a folder of raw scans: poses, merged cloud, report and a rerun recording."""
@@ -341,6 +349,7 @@ def register(
             no_rrd=no_rrd,
             spawn=spawn,
             force=force,
+            sequence=sequence,
         )
         raise typer.Exit(code)
 
@@ -362,12 +371,16 @@ def register_folder(
     force=False,
     progress=True,
     truth=None,
+    sequence=False,
 ):
     """The body of `mvreg register` (also used by `mvreg demo`). Returns the exit code."""
     from mvreg.config import load_config
     from mvreg.errors import ConfigError, OutputExistsError
     from mvreg.io.writers import prepare_output, residual_heatmap, write_registration
     from mvreg.pipeline import register as run_register
+
+    if sequence:
+        from mvreg.sequence import register_sequence as run_register
     from mvreg.solver import SOLVERS
     from mvreg.viz import make_recorder
 

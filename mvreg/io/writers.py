@@ -115,7 +115,9 @@ def write_registration(reg, out: str | Path) -> dict[str, Path]:
         certificate=cert,
     )
     if poses:
-        write_poses_tum(paths["tum"], poses)
+        stamps = getattr(reg, "timestamps", None) or {}
+        times = [stamps[n] for n in names] if all(n in stamps for n in names) else None
+        write_poses_tum(paths["tum"], poses, timestamps=times)
         write_poses_kitti(paths["kitti"], poses)
         pts, cols = merged_cloud(reg)
         write_ply(paths["merged"], pts, cols)

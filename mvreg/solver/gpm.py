@@ -20,6 +20,11 @@ Stopping rule (documented; checked every iteration):
   or the iteration cap ``ctx.max_iter``. The fixed-point gap of paper 001 Sec. 5
   (1 - Tr(X^T Y) / sum_i ||Y_i||_*, zero exactly at fixed points of the iteration) is
   recorded in the history for reference.
+
+Accuracy: the certificate (solve()) bounds the suboptimality by ~||grad||^2 / mu, so on
+noisy data a KKT residual of ~1e-6 (what tol = 1e-6 gives) is often too inexact to be
+certified although the point is the global optimum; tol ~1e-9 (used in the benchmarks) or
+``solve(..., polish_steps=True)`` gives certifiable output.
 """
 
 from __future__ import annotations

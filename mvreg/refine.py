@@ -181,13 +181,19 @@ def refine_rounds(
     cfg: RegisterConfig,
     callback: Callable | None = None,
     scans: Sequence | None = None,
+    pairs: Sequence[tuple[int, int]] | None = None,
+    tracks_cfg=None,
 ) -> tuple[GlobalSolution, list[dict]]:
     """Multiview ICP: correspondences of all overlapping scans under the global poses,
     tracks, global re-solve warm-started; ``cfg.refine.rounds`` times, shrinking distance.
 
     With ``scans`` and ``cfg.refine.dense_voxel_ratio``, the last round matches the raw
     scans resampled at that fraction of the feature voxel instead of the fine points.
+    ``pairs`` restricts the rounds to those scan pairs (default: every registered pair
+    whose world bounding boxes overlap); ``tracks_cfg`` overrides ``cfg.tracks`` (normal
+    agreement, per-pair thinning, conflict splitting).
     """
+    tc = tracks_cfg if tracks_cfg is not None else cfg.tracks
     log = []
     voxel = pre[0].voxel_size
     names = [p.name for p in pre]
@@ -201,8 +207,13 @@ def refine_rounds(
             points = [p.fine_points for p in pre]
             normals = [p.fine_normals for p in pre]
             trees = [p.fine_tree() for p in pre]
-        pairs, corr, dists = [], [], []
-        for i, j in overlapping_pairs(pre, sol.T_world_scan, dist_v * voxel):
+        candidates = (
+            overlapping_pairs(pre, sol.T_world_scan, dist_v * voxel)
+            if pairs is None
+            else [(i, j) for i, j in pairs if i in sol.T_world_scan and j in sol.T_world_scan]
+        )
+        used, corr, dists = [], [], []
+        for i, j in candidates:
             T_i_j = invert_transform(sol.T_world_scan[i]) @ sol.T_world_scan[j]
             idx_i, idx_j = mutual_correspondences(
                 points[i],
@@ -211,23 +222,30 @@ def refine_rounds(
                 dist_v * voxel,
                 normals_i=normals[i],
                 normals_j=normals[j],
-                min_normal_cos=cfg.tracks.min_normal_cos,
+                min_normal_cos=tc.min_normal_cos,
                 tree_i=trees[i],
                 tree_j=trees[j],
             )
+            cap = tc.max_correspondences_per_pair
+            if cap is not None and len(idx_i) > cap:  # evenly thinned, as in pair_correspondences
+                keep = np.linspace(0, len(idx_i) - 1, cap).round().astype(np.int64)
+                idx_i, idx_j = idx_i[keep], idx_j[keep]
             if len(idx_i) < cfg.refine.min_correspondences:
                 continue
             moved = transform_points(T_i_j, points[j][idx_j])
-            pairs.append((i, j))
+            used.append((i, j))
             corr.append((idx_i, idx_j))
             dists.append(np.linalg.norm(points[i][idx_i] - moved, axis=1))
-        if not pairs:
+        if not used:
             break
-        pairs_arr = np.array(pairs, dtype=np.int64)
+        pairs_arr = np.array(used, dtype=np.int64)
         # Robust weights per pair from its residual under the current poses.
         med = np.array([float(np.median(d)) for d in dists])
         w = robust_weights(med, voxel, cfg.robust)
-        tracks = tracks_from_correspondences(points, names, pairs_arr, corr, w, distances=dists)
+        tracks = tracks_from_correspondences(
+            points, names, pairs_arr, corr, w, distances=dists,
+            split_conflicts=tc.split_conflicting_tracks,
+        )  # fmt: skip
         if tracks.problem is None:
             break
         prev = sol
@@ -242,7 +260,7 @@ def refine_rounds(
                 "round": k + 1,
                 "distance_voxels": dist_v,
                 "dense": bool(dense),
-                "pairs": len(pairs),
+                "pairs": len(used),
                 "observations": int(tracks.problem.num_observations),
                 "pair_residual_median": float(np.median(med)),
                 "max_translation_change": moved_max,

@@ -101,13 +101,13 @@ from mvreg.pairwise.tracks import (
     Tracks,
     TracksConfig,
     build_tracks,
-    pair_correspondences,
     tracks_from_correspondences,
 )
 from mvreg.pipeline import Registration
 from mvreg.refine import (
     GlobalSolution,
     pair_residuals,
+    refine_rounds,
     robust_rounds,
     robust_weights,
     solve_tracks,
@@ -369,7 +369,9 @@ def _global_stage(pre, results, cfg: RegisterConfig, seq: SequenceConfig, prog, 
         graph = [
             (int(i), int(j)) for (i, j), w in zip(tracks.pairs, out.weights, strict=True) if w > 0
         ]
-        sol, out.refine_log = refine_on_pairs(pre, sol, graph, cfg, tcfg, callback=callback)
+        sol, out.refine_log = refine_rounds(
+            pre, sol, cfg, callback=callback, pairs=graph, tracks_cfg=tcfg
+        )
     timed("refine")
     out.solution = sol
     return out
@@ -1258,76 +1260,6 @@ def refine_pose_graph(
             }
         )
     return sol, tracks, weights, results, log
-
-
-def refine_on_pairs(
-    pre: Sequence[PreprocessedScan],
-    sol: GlobalSolution,
-    pairs: Sequence[tuple[int, int]],
-    cfg: RegisterConfig,
-    tcfg: TracksConfig,
-    callback: Callable | None = None,
-) -> tuple[GlobalSolution, list[dict]]:
-    """Multiview ICP rounds like :func:`mvreg.refine.refine_rounds`, on the given pairs.
-
-    ``refine_rounds`` recomputes correspondences for every pair of scans whose bounding
-    boxes overlap, which for surround scans of one place is nearly every pair (M^2 / 2);
-    here only the pair graph of the sequence (sequential pairs and loop closures) is
-    used. Correspondences are recomputed under the current global poses with a
-    shrinking distance (``cfg.refine.distance_voxels``), pairs re-weighted by their
-    residual, and the problem re-solved warm-started, ``cfg.refine.rounds`` times.
-    """
-    log: list[dict] = []
-    if not pre:
-        return sol, log
-    voxel = pre[0].voxel_size
-    names = [p.name for p in pre]
-    points = [p.fine_points for p in pre]
-    for k in range(cfg.refine.rounds):
-        dist_v = cfg.refine.distance_voxels[min(k, len(cfg.refine.distance_voxels) - 1)]
-        kcfg = tcfg.model_copy(update={"max_correspondence_voxels": dist_v})
-        used, corr, dists = [], [], []
-        with single_threaded_blas():
-            for i, j in pairs:
-                if i not in sol.T_world_scan or j not in sol.T_world_scan:
-                    continue
-                T_i_j = invert_transform(sol.T_world_scan[i]) @ sol.T_world_scan[j]
-                idx_i, idx_j = pair_correspondences(pre[i], pre[j], T_i_j, kcfg)
-                if len(idx_i) < cfg.refine.min_correspondences:
-                    continue
-                moved = transform_points(T_i_j, pre[j].fine_points[idx_j])
-                used.append((i, j))
-                corr.append((idx_i, idx_j))
-                dists.append(np.linalg.norm(pre[i].fine_points[idx_i] - moved, axis=1))
-        if not used:
-            break
-        med = np.array([float(np.median(d)) for d in dists])
-        w = robust_weights(med, voxel, cfg.robust)
-        tracks = tracks_from_correspondences(
-            points, names, np.array(used, dtype=np.int64), corr, w, distances=dists,
-            split_conflicts=tcfg.split_conflicting_tracks,
-        )  # fmt: skip
-        if tracks.problem is None:
-            break
-        prev = sol
-        sol = solve_tracks(tracks, cfg, init=sol.T_world_scan, callback=callback)
-        moved_max = max(
-            float(np.linalg.norm(sol.T_world_scan[s][:3, 3] - prev.T_world_scan[s][:3, 3]))
-            for s in sol.T_world_scan
-            if s in prev.T_world_scan
-        )
-        log.append(
-            {
-                "round": k + 1,
-                "distance_voxels": dist_v,
-                "pairs": len(used),
-                "observations": int(tracks.problem.num_observations),
-                "pair_residual_median": float(np.median(med)),
-                "max_translation_change": moved_max,
-                "certified": sol.result.certified,
-            }
-        )
-    return sol, log
 
 
 # ---------------------------------------------------------------------------- report

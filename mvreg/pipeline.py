@@ -132,7 +132,7 @@ def register(
 
     timed.t = t_start
 
-    scans, source_str, truth = _load(source, names, cfg, truth, prog)
+    scans, source_str, truth = load_source(source, names, cfg, truth, prog)
     timed("load")
     rec.log_config(cfg.model_dump(mode="json"))
     rec.log_raw_scans([s.name for s in scans], [s.points for s in scans])
@@ -225,7 +225,9 @@ def _record_pairs(rec, sol: GlobalSolution, names: list[str]) -> None:
         rec.log_pair_correspondences(names[int(i)], names[int(j)], pa, pb, w)
 
 
-def _load(source, names, cfg, truth, prog):
+def load_source(source, names, cfg, truth, prog, what: str = "registration"):
+    """Scans from a folder or from (N, 3) arrays, checked; the source as text; the truth
+    (read from ``ground_truth.json`` in the folder when not given)."""
     if isinstance(source, (str, Path)):
         folder = Path(source)
         if not folder.is_dir():
@@ -261,7 +263,7 @@ def _load(source, names, cfg, truth, prog):
             )
         src = None
     if len(scans) < 2:
-        raise InputError(f"{source}: registration needs at least 2 scans, found {len(scans)}")
+        raise InputError(f"{source}: {what} needs at least 2 scans, found {len(scans)}")
     return scans, src, truth
 
 

@@ -78,7 +78,7 @@ from scipy.spatial import cKDTree
 from mvreg.config import RegisterConfig, load_config
 from mvreg.errors import ConfigError, InputError
 from mvreg.geometry import invert_transform, rotation_angle_deg, transform_points
-from mvreg.io.loaders import Scan, list_scan_files, load_scan
+from mvreg.io.loaders import Scan
 from mvreg.metrics import pose_errors
 from mvreg.pairwise._threads import single_threaded_blas
 from mvreg.pairwise.align import (
@@ -103,7 +103,7 @@ from mvreg.pairwise.tracks import (
     build_tracks,
     tracks_from_correspondences,
 )
-from mvreg.pipeline import Registration
+from mvreg.pipeline import Registration, load_source
 from mvreg.refine import (
     GlobalSolution,
     pair_residuals,
@@ -416,41 +416,8 @@ def _tracks_config(cfg: RegisterConfig, seq: SequenceConfig) -> TracksConfig:
 def _load(source, names, cfg: RegisterConfig, truth, prog):
     """Scans in order, the source as text, the truth (read from the folder if not
     given) and the folder (None for arrays)."""
-    if isinstance(source, (str, Path)):
-        folder = Path(source)
-        if not folder.is_dir():
-            raise InputError(f"{folder}: not a folder of scans")
-        files = list_scan_files(folder)
-        prog.stage("load", len(files))
-        scans = []
-        for f in files:
-            scans.append(load_scan(f, min_points=cfg.min_points))
-            prog.advance()
-        if truth is None and (folder / "ground_truth.json").exists():
-            from mvreg.io.poses import read_poses_json
-
-            truth = read_poses_json(folder / "ground_truth.json")
-        src = str(folder)
-    else:
-        folder = None
-        arrays = list(source)
-        names = list(names) if names is not None else [f"scan_{i:03d}" for i in range(len(arrays))]
-        if len(names) != len(arrays):
-            raise InputError(f"{len(names)} names for {len(arrays)} point arrays")
-        scans = []
-        for n, a in zip(names, arrays, strict=True):
-            a = np.asarray(a, dtype=np.float64)
-            if a.ndim != 2 or a.shape[1] != 3:
-                raise InputError(f"{n}: points must be an (N, 3) array, got {a.shape}")
-            ok = np.all(np.isfinite(a), axis=1)
-            if ok.sum() < cfg.min_points:
-                raise InputError(f"{n}: {int(ok.sum())} valid points, need {cfg.min_points}")
-            scans.append(
-                Scan(name=n, path=Path(n), points=a[ok], num_dropped_nonfinite=int((~ok).sum()))
-            )
-        src = None
-    if len(scans) < 2:
-        raise InputError(f"{source}: a sequence needs at least 2 scans, found {len(scans)}")
+    scans, src, truth = load_source(source, names, cfg, truth, prog, what="a sequence")
+    folder = Path(source) if isinstance(source, (str, Path)) else None
     return scans, src, truth, folder
 
 

@@ -106,3 +106,27 @@ def test_open3d_optimizer_edge_direction(bp):
     out = bp.o3d_optimize(n, edges, init, 0.1)
     for k in range(n):
         np.testing.assert_allclose(out[k], T_true[k], atol=1e-4)
+
+
+def test_reuse_stages_runs_register_with_another_solver(bp, tmp_path):
+    """The mvreg solver variants rerun register() on the cached stages of a first run;
+    this must keep working as mvreg.pipeline changes."""
+    import copy
+
+    from data_synth import synthesize_scans
+    from mvreg.pipeline import register
+
+    synthesize_scans(
+        "builtin", tmp_path / "s", views=4, points_per_scan=3000, seed=0, random_frames=True
+    )
+    cap = {}
+
+    def hook(pre, results):
+        cap["pre"], cap["results"] = pre, copy.deepcopy(results)
+        return results
+
+    first = register(tmp_path / "s", pair_hook=hook)
+    with bp.reuse_stages(first.scans, cap["pre"], cap["results"]):
+        again = register(tmp_path / "s", **{"solve.solver": "spectral", "refine.rounds": 0})
+    assert set(again.T_world_scan) == set(first.T_world_scan)
+    assert again.timings["pairwise"] < 1.0  # the cached pairs, not a new alignment

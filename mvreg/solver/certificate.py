@@ -69,25 +69,51 @@ def multipliers(X: np.ndarray, CX: np.ndarray, d: int) -> tuple[np.ndarray, np.n
     return lam, grad
 
 
-def _complement_min_eig(aop, op, lam, q, lam_max, d, seed, maxiter):
+def _complement_min_eig(aop, op, lam, q, lam_max, d, seed, maxiter, inverse=None):
     """Smallest eigenvalue of A = C + Lambda on the complement of span(q); residual norm."""
     n = op.n
     rng = np.random.default_rng(seed)
+    if inverse is not None:
+        # Block LOBPCG on the complement, preconditioned by a (C + Lambda' + sigma I)^{-1}
+        # factorized at a nearby point (the Newton polish's, on large problems).
+        return _lobpcg_min_eig(aop, inverse, q, lam_max, rng, n)
     if direct_feasible(op):
-        # Shift-invert Lanczos with the exact (A + sigma I)^{-1} (one sparse LU): the d null
-        # vectors of A and the next eigenvalues, accurately, in a few iterations.
+        # Shift-invert Lanczos on the complement of span(q) with the exact
+        # (A + sigma I)^{-1} from one sparse factorization, projected: OPinv = P (A+sI)^{-1} P
+        # has the eigenvalues 1 / (mu + sigma) on the complement and 0 on span(q), so only
+        # the complement's smallest eigenvalues are sought.
+        # The shift: 1e-4 lambda_max, raised tenfold while the factorization's inertia says
+        # A + sigma I is indefinite (then eigenvalues below -sigma exist, which shift-invert
+        # near -sigma could miss). Without inertia (SuperLU) a LOBPCG guard follows instead.
         sigma = 1e-4 * lam_max
         inv = ShiftedInverse(op, lam, sigma)
-        opinv = spla.LinearOperator((n, n), matvec=inv, matmat=inv, dtype=np.float64)
-        k = min(d + 2, n - 1)
-        w, v = spla.eigsh(
-            aop, k=k, sigma=-sigma, OPinv=opinv, which="LM", tol=1e-10, v0=rng.standard_normal(n)
-        )
-        # Drop the d eigenvectors lying in span(q) (the solution's own null space).
-        inside = np.linalg.norm(q.T @ v, axis=0)
-        keep = np.argsort(inside)[: k - d]
-        mu = float(np.min(w[keep]))
-        res = float(np.linalg.norm(aop.matmat(v[:, keep]) - v[:, keep] * w[keep]))
+        neg0 = inv.negative_eigenvalues
+        while inv.negative_eigenvalues and sigma < 1e3 * lam_max:
+            sigma *= 10.0
+            inv = ShiftedInverse(op, lam, sigma)
+
+        def project(r):
+            return r - q @ (q.T @ r)
+
+        def pinv(r):
+            r2 = r[:, None] if r.ndim == 1 else r
+            y = project(inv(project(r2)))
+            return y[:, 0] if r.ndim == 1 else y
+
+        opinv = spla.LinearOperator((n, n), matvec=pinv, matmat=pinv, dtype=np.float64)
+        k = min(2, n - d - 1)
+        v0 = project(rng.standard_normal((n, 1)))[:, 0]
+        w, v = spla.eigsh(aop, k=k, sigma=-sigma, OPinv=opinv, which="LM", tol=1e-10, v0=v0)
+        mu = float(np.min(w))
+        res = float(np.linalg.norm(aop.matmat(v) - v * w))
+        if neg0 is not None and neg0 > d:
+            # More than d eigenvalues of A below -1e-4 lambda_max: since q^T A q = 0, by
+            # interlacing at least one lies below it on the complement too.
+            mu = min(mu, -1e-4 * lam_max)
+        if inv.negative_eigenvalues == 0:
+            # A + sigma I is positive definite: no eigenvalue lies below -sigma, where
+            # shift-invert could miss it.
+            return mu, res
         # Guard against eigenvalues far below -sigma, which shift-invert would not see:
         # a short LOBPCG on the complement, preconditioned by the same inverse.
         with warnings.catch_warnings():
@@ -110,6 +136,20 @@ def _complement_min_eig(aop, op, lam, q, lam_max, d, seed, maxiter):
     return float(np.min(w)), float(np.min(hist[-1])) if len(hist) else float("nan")
 
 
+def _lobpcg_min_eig(aop, inverse, q, lam_max, rng, n, block=4, maxiter=60):
+    opinv = spla.LinearOperator((n, n), matvec=inverse, matmat=inverse, dtype=np.float64)
+    x0 = rng.standard_normal((n, block))
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        w, v = spla.lobpcg(
+            aop, x0, Y=q, M=opinv, largest=False, tol=1e-9 * lam_max, maxiter=maxiter
+        )
+    i = int(np.argmin(w))
+    vi = v[:, i : i + 1]
+    res = float(np.linalg.norm(aop.matmat(vi) - w[i] * vi))
+    return float(w[i]), res
+
+
 def certify(
     op,
     R: np.ndarray,
@@ -118,8 +158,14 @@ def certify(
     gap_tol: float = DEFAULT_GAP_TOL,
     seed: int = 0,
     maxiter: int = 400,
+    inverse=None,
 ) -> Certificate:
-    """Certificate for rotations R (M, d, d) of the normalized problem in ``op``."""
+    """Certificate for rotations R (M, d, d) of the normalized problem in ``op``.
+
+    ``inverse``: an approximate (C + Lambda + sigma I)^{-1} from a nearby point (the Newton
+    polish's preconditioner on large problems) to precondition the eigensolver with, instead
+    of factorizing anew.
+    """
     d, n = op.d, op.n
     X = x_from_rotations(R)
     CX = op.matvec(X)
@@ -147,7 +193,7 @@ def certify(
             return op.matvec(v) + block_apply(lam, v)
 
         aop = spla.LinearOperator((n, n), matvec=apply, matmat=apply, dtype=np.float64)
-        mu, eig_res = _complement_min_eig(aop, op, lam, q, lam_max, d, seed, maxiter)
+        mu, eig_res = _complement_min_eig(aop, op, lam, q, lam_max, d, seed, maxiter, inverse)
     e2 = float(np.linalg.norm(grad, 2)) if e_fro > 0 else 0.0
     lam_min_full = min(0.0, 0.5 * (mu - np.sqrt(mu * mu + 4.0 * e2 * e2))) if mu > 0 else mu
     s2 = op.norm.scale**2

@@ -12,14 +12,24 @@ A backtracking line search keeps the cost decreasing.
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+import os
+from dataclasses import dataclass, field
 
 import numpy as np
 
 from mvreg.geometry import project_to_orthogonal
 from mvreg.solver.blocks import rotations_from_x, sym, x_from_rotations
 from mvreg.solver.certificate import multipliers
-from mvreg.solver.shift_invert import NewtonSystem, direct_feasible
+from mvreg.solver.shift_invert import (
+    NewtonSystem,
+    ShiftedInverse,
+    direct_feasible,
+    newton_direct_feasible,
+)
+
+_DEBUG = bool(os.environ.get("MVREG_DEBUG_POLISH"))
+# Shift of the bordered preconditioner on large problems, relative to lambda_max(C).
+SHIFT = 1e-4
 
 
 @dataclass
@@ -28,6 +38,9 @@ class PolishStats:
     cg_steps: int
     kkt_residual: float  # ||grad||_F / (lambda_max sqrt(n))
     objective: float  # normalized units
+    # The (C + Lambda + sigma I)^{-1} used as preconditioner on large problems (reused by
+    # the certificate), else None.
+    inverse: object = field(default=None, repr=False)
 
 
 def _tangent_project(xb: np.ndarray, zb: np.ndarray) -> np.ndarray:
@@ -65,12 +78,28 @@ def polish(
     max_cg: int = 500,
     precondition: bool = True,
 ) -> tuple[np.ndarray, PolishStats]:
-    """Newton-refine rotations R (M, d, d) to a KKT point. Returns (R, stats)."""
+    """Newton-refine rotations R (M, d, d) to a KKT point. Returns (R, stats).
+
+    Preconditioner: the exact Newton system at the start (one sparse factorization) when
+    affordable; on larger problems (C + Lambda + sigma I)^{-1} at the start, projected onto
+    the tangent space (a cheaper factorization, and the certificate reuses it).
+    """
     d, n = op.d, op.n
     X = x_from_rotations(R)
     CX = op.matvec(X)
     use_direct = precondition and op.M > 1 and direct_feasible(op)
-    prec = NewtonSystem(op, X, CX).step if use_direct else None
+    exact = use_direct and newton_direct_feasible(op)
+    inverse = None
+
+    def make_prec(X, CX):
+        nonlocal inverse
+        if exact:
+            return NewtonSystem(op, X, CX).step
+        inverse = ShiftedInverse(op, multipliers(X, CX, d)[0], SHIFT * lam_max)
+        return lambda g: -inverse(g)
+
+    prec = make_prec(X, CX) if use_direct else None
+    refresh_after = 20 if exact else 60
     cg_last = 0
     f = float(np.sum(X * CX))
     scale = lam_max * np.sqrt(n)
@@ -88,9 +117,9 @@ def polish(
         if gnorm <= kkt_tol * scale or it == max_newton or slow >= 3:
             break
         prev = gnorm
-        if use_direct and cg_last > 20:
+        if use_direct and cg_last > refresh_after:
             # The factorization from an earlier point no longer preconditions well: refresh.
-            prec = NewtonSystem(op, X, CX).step
+            prec = make_prec(X, CX)
         mi = sym(np.einsum("mba,mbc->mac", xb, CX.reshape(-1, d, d)))
 
         def hess(v, xb=xb, mi=mi):
@@ -106,6 +135,7 @@ def polish(
         rz = float(np.sum(r * z))
         stop = float(np.sum(r * r)) * min(0.01, gnorm / scale) ** 2
         cg_last = 0
+        best_rr, since_best = np.inf, 0
         for _ in range(max_cg):
             hp = hess(p)
             cg_total += 1
@@ -118,7 +148,12 @@ def polish(
             alpha = rz / php
             xi += alpha * p
             r -= alpha * hp
-            if float(np.sum(r * r)) <= stop:
+            rr = float(np.sum(r * r))
+            if rr <= stop:
+                break
+            # Stagnation: rounding errors in the products with C set a floor on the residual.
+            best_rr, since_best = (rr, 0) if rr < 0.5 * best_rr else (best_rr, since_best + 1)
+            if since_best >= 30:
                 break
             z = _precondition(prec, xb, r)
             rz_new = float(np.sum(r * z))
@@ -144,6 +179,11 @@ def polish(
                 accepted = True
                 break
             step *= 0.5
+        if _DEBUG:
+            print(
+                f"polish: step {it} |g| {gnorm / scale:.3e} cg {cg_last} t {step:g} f {fn:.12g}",
+                flush=True,
+            )
         if not accepted:
             break  # no further decrease at machine precision
         X, CX, f = xn, cxn, fn
@@ -151,4 +191,4 @@ def polish(
     out = rotations_from_x(X, d)
     if not allow_reflections:
         out = project_to_orthogonal(out, allow_reflections=False)
-    return out, PolishStats(it, cg_total, float(np.linalg.norm(g)) / scale, f)
+    return out, PolishStats(it, cg_total, float(np.linalg.norm(g)) / scale, f, inverse)

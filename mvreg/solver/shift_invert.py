@@ -17,10 +17,15 @@ import numpy as np
 import scipy.sparse as sp
 import scipy.sparse.linalg as spla
 
+from mvreg.solver import pardiso
+
 # Above this many unknowns the sparse LU is not attempted (fill-in grows superlinearly;
 # measured here with nested dissection: 0.7 s at M = 10,000, 75 s and 232M nonzeros at
 # M = 100,000 for the (d + 1) M bordered system).
 DIRECT_MAX_UNKNOWNS = 800_000
+# With MKL PARDISO (9.3 s and ~3 GB for the 400k-unknown system at M = 100,000).
+PARDISO_MAX_UNKNOWNS = 2_000_000
+NEWTON_PARDISO_MAX_UNKNOWNS = 1_000_000
 
 
 def patch_order(S: sp.spmatrix) -> np.ndarray | None:
@@ -40,17 +45,19 @@ def patch_order(S: sp.spmatrix) -> np.ndarray | None:
 
 
 def factorize(K: sp.spmatrix, dof_patch: np.ndarray, S: sp.spmatrix):
-    """Sparse LU of K whose unknown u belongs to patch dof_patch[u].
+    """Sparse factorization of the symmetric K whose unknown u belongs to patch dof_patch[u].
 
-    Unknowns are ordered patch by patch in the nested-dissection order of the patch graph
-    (fill grows like a 3-D mesh's instead of a random graph's); without pymetis SuperLU's
-    COLAMD is used. Returns solve(b) for b of shape (len,) or (len, r).
+    MKL PARDISO (supernodal LDL^T, METIS order) when available (pardiso.py). Otherwise
+    SciPy's SuperLU, with unknowns ordered patch by patch in the nested-dissection order of
+    the patch graph (fill grows like a 3-D mesh's instead of a random graph's); without
+    pymetis SuperLU's COLAMD is used. Returns solve(b) for b of shape (len,) or (len, r).
     """
+    if pardiso.available():
+        return pardiso.PardisoFactor(K)
     K = K.tocsc()
     order = patch_order(S)
     if order is None:
-        lu = spla.splu(K, permc_spec="COLAMD")
-        return lu.solve
+        return _Solve(spla.splu(K, permc_spec="COLAMD").solve)
     rank = np.empty_like(order)
     rank[order] = np.arange(len(order))
     perm = np.argsort(rank[dof_patch], kind="stable")
@@ -66,7 +73,19 @@ def factorize(K: sp.spmatrix, dof_patch: np.ndarray, S: sp.spmatrix):
         x[perm] = lu.solve(np.ascontiguousarray(b[perm]))
         return x
 
-    return solve
+    return _Solve(solve)
+
+
+class _Solve:
+    """A solve function without inertia information (SuperLU)."""
+
+    inertia = None
+
+    def __init__(self, fn):
+        self._fn = fn
+
+    def __call__(self, b):
+        return self._fn(b)
 
 
 class ShiftedInverse:
@@ -84,6 +103,19 @@ class ShiftedInverse:
         dof_patch = np.r_[np.arange(n) // op.d, np.arange(m)][keep]
         self._solve = factorize(K[keep][:, keep], dof_patch, op.S)
 
+    @property
+    def negative_eigenvalues(self) -> int | None:
+        """Number of eigenvalues of C + Lambda + sigma I below 0, when the factor tells.
+
+        K's inertia is the translations' Laplacian block's (M - 1 positive) plus that of its
+        Schur complement C + Lambda + sigma I (Haynsworth), so K's negative pivot count is
+        the count for C + Lambda + sigma I. None with SuperLU or perturbed pivots.
+        """
+        f = self._solve
+        if f.inertia is None or getattr(f, "perturbed", 0):
+            return None
+        return int(f.inertia[1])
+
     def __call__(self, r: np.ndarray) -> np.ndarray:
         r2 = r[:, None] if r.ndim == 1 else r
         rhs = np.zeros((self.n + self.m, r2.shape[1]))
@@ -94,9 +126,24 @@ class ShiftedInverse:
         return out[:, 0] if r.ndim == 1 else out
 
 
+def newton_direct_feasible(op) -> bool:
+    """Whether the exact Newton system (d(d-1)/2 + d unknowns per patch) is worth factorizing.
+
+    Above this size the Newton CG is preconditioned by the cheaper (C + Lambda + sigma I)^{-1}
+    of the (d + 1)-unknowns-per-patch bordered system instead (at M = 100,000 the exact
+    Newton factor took 51 s and 261M nonzeros, the bordered one 10 s).
+    """
+    if not direct_feasible(op):
+        return False
+    k = op.d * (op.d - 1) // 2
+    limit = NEWTON_PARDISO_MAX_UNKNOWNS if pardiso.available() else DIRECT_MAX_UNKNOWNS
+    return op.M * (k + op.d) <= limit
+
+
 def direct_feasible(op) -> bool:
-    """Whether the sparse LU of the bordered system is affordable for this problem."""
-    return op.M * (op.d + 1) <= DIRECT_MAX_UNKNOWNS
+    """Whether a sparse factorization of the bordered system is affordable for this problem."""
+    limit = PARDISO_MAX_UNKNOWNS if pardiso.available() else DIRECT_MAX_UNKNOWNS
+    return op.M * (op.d + 1) <= limit
 
 
 def skew_basis(d: int) -> np.ndarray:

@@ -177,7 +177,12 @@ def _solve(
         if pst.objective >= best["f"] - 1e-12 * max(abs(best["f"]), 1e-300):
             return False  # same stationary point as before: already checked
         t2 = time.perf_counter()
-        cert = certify(op, Rp, lam_max, dense, gap_tol, seed) if certify_result else None
+        cert = (
+            certify(op, Rp, lam_max, dense, gap_tol, seed, inverse=pst.inverse)
+            if certify_result
+            else None
+        )
+        pst.inverse = None  # free the factorization
         t_cert[0] += time.perf_counter() - t2
         best.update(R=Rp, f=pst.objective, cert=cert, polish=pst, at=k)
         return bool(cert is not None and cert.certified)
@@ -215,10 +220,15 @@ def _solve(
             best.update(R=R_final, at=run.iterations)
         if best["R"] is R_final or best["cert"] is None:
             t2 = time.perf_counter()
+            inv = best["polish"].inverse if best["polish"] is not None else None
             best["cert"] = (
-                certify(op, best["R"], lam_max, dense, gap_tol, seed) if certify_result else None
+                certify(op, best["R"], lam_max, dense, gap_tol, seed, inverse=inv)
+                if certify_result
+                else None
             )
             t_cert[0] += time.perf_counter() - t2
+    if best["polish"] is not None:
+        best["polish"].inverse = None  # free the factorization
     timings["polish"] = t_polish[0]
     timings["certificate"] = t_cert[0]
 

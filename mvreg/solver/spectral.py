@@ -51,7 +51,7 @@ def spectrum(op, dense: bool, seed: int = 0, tol: float = 1e-10) -> Spectrum:
         return Spectrum(w, v, lmax)
     lmax = lambda_max(op, False, seed)
     if direct_feasible(op):
-        # Shift-invert Lanczos with the exact (C + sigma I)^{-1} from one sparse LU.
+        # Shift-invert with the exact (C + sigma I)^{-1} from one sparse factorization.
         sigma = 1e-4 * lmax
         inv = ShiftedInverse(op, None, sigma)
         opinv = spla.LinearOperator((n, n), matvec=inv, matmat=inv, dtype=np.float64)

@@ -219,7 +219,7 @@ def write_report(a, rows, agree, cli) -> None:
     from mvreg.solver import pardiso
 
     a.out.mkdir(parents=True, exist_ok=True)
-    cmd = "python scripts/bench_solver.py" + (" --quick" if a.quick else "")
+    cmd = "python scripts/bench_solver.py " + " ".join(sys.argv[1:])
     lines = [
         "# Global solver: dense vs matrix-free REG-ADMM",
         "",

@@ -22,7 +22,7 @@ import scipy.linalg as sla
 import scipy.sparse.linalg as spla
 
 from mvreg.solver.blocks import block_apply, sym, x_from_rotations
-from mvreg.solver.shift_invert import ShiftedInverse, direct_feasible
+from mvreg.solver.shift_invert import SHIFT, ShiftedInverse, direct_feasible
 
 # certified iff the relative suboptimality bound is below this (and mu >= -EIG_TOL).
 DEFAULT_GAP_TOL = 1e-6
@@ -82,10 +82,10 @@ def _complement_min_eig(aop, op, lam, q, lam_max, d, seed, maxiter, inverse=None
         # (A + sigma I)^{-1} from one sparse factorization, projected: OPinv = P (A+sI)^{-1} P
         # has the eigenvalues 1 / (mu + sigma) on the complement and 0 on span(q), so only
         # the complement's smallest eigenvalues are sought.
-        # The shift: 1e-4 lambda_max, raised tenfold while the factorization's inertia says
+        # The shift: SHIFT lambda_max, raised tenfold while the factorization's inertia says
         # A + sigma I is indefinite (then eigenvalues below -sigma exist, which shift-invert
         # near -sigma could miss). Without inertia (SuperLU) a LOBPCG guard follows instead.
-        sigma = 1e-4 * lam_max
+        sigma = SHIFT * lam_max
         inv = ShiftedInverse(op, lam, sigma)
         neg0 = inv.negative_eigenvalues
         while inv.negative_eigenvalues and sigma < 1e3 * lam_max:
@@ -107,9 +107,9 @@ def _complement_min_eig(aop, op, lam, q, lam_max, d, seed, maxiter, inverse=None
         mu = float(np.min(w))
         res = float(np.linalg.norm(aop.matmat(v) - v * w))
         if neg0 is not None and neg0 > d:
-            # More than d eigenvalues of A below -1e-4 lambda_max: since q^T A q = 0, by
+            # More than d eigenvalues of A below -SHIFT lambda_max: since q^T A q = 0, by
             # interlacing at least one lies below it on the complement too.
-            mu = min(mu, -1e-4 * lam_max)
+            mu = min(mu, -SHIFT * lam_max)
         if inv.negative_eigenvalues == 0:
             # A + sigma I is positive definite: no eigenvalue lies below -sigma, where
             # shift-invert could miss it.

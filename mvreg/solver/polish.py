@@ -12,7 +12,6 @@ A backtracking line search keeps the cost decreasing.
 
 from __future__ import annotations
 
-import os
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -21,15 +20,12 @@ from mvreg.geometry import project_to_orthogonal
 from mvreg.solver.blocks import rotations_from_x, sym, x_from_rotations
 from mvreg.solver.certificate import multipliers
 from mvreg.solver.shift_invert import (
+    SHIFT,
     NewtonSystem,
     ShiftedInverse,
     direct_feasible,
     newton_direct_feasible,
 )
-
-_DEBUG = bool(os.environ.get("MVREG_DEBUG_POLISH"))
-# Shift of the bordered preconditioner on large problems, relative to lambda_max(C).
-SHIFT = 1e-4
 
 
 @dataclass
@@ -179,11 +175,6 @@ def polish(
                 accepted = True
                 break
             step *= 0.5
-        if _DEBUG:
-            print(
-                f"polish: step {it} |g| {gnorm / scale:.3e} cg {cg_last} t {step:g} f {fn:.12g}",
-                flush=True,
-            )
         if not accepted:
             break  # no further decrease at machine precision
         X, CX, f = xn, cxn, fn

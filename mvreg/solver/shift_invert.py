@@ -26,6 +26,9 @@ DIRECT_MAX_UNKNOWNS = 800_000
 # With MKL PARDISO (9.3 s and ~3 GB for the 400k-unknown system at M = 100,000).
 PARDISO_MAX_UNKNOWNS = 2_000_000
 NEWTON_PARDISO_MAX_UNKNOWNS = 1_000_000
+# The shift sigma of every shifted inverse (C + Lambda + sigma I)^{-1}, relative to
+# lambda_max(C): spectral start, certificate and the large-problem Newton preconditioner.
+SHIFT = 1e-4
 
 
 def patch_order(S: sp.spmatrix) -> np.ndarray | None:

@@ -14,7 +14,7 @@ import scipy.linalg as sla
 import scipy.sparse.linalg as spla
 
 from mvreg.solver.blocks import round_to_rotations
-from mvreg.solver.shift_invert import ShiftedInverse, direct_feasible
+from mvreg.solver.shift_invert import SHIFT, ShiftedInverse, direct_feasible
 
 
 @dataclass
@@ -52,7 +52,7 @@ def spectrum(op, dense: bool, seed: int = 0, tol: float = 1e-10) -> Spectrum:
     lmax = lambda_max(op, False, seed)
     if direct_feasible(op):
         # Shift-invert with the exact (C + sigma I)^{-1} from one sparse factorization.
-        sigma = 1e-4 * lmax
+        sigma = SHIFT * lmax
         inv = ShiftedInverse(op, None, sigma)
         opinv = spla.LinearOperator((n, n), matvec=inv, matmat=inv, dtype=np.float64)
         v0 = np.random.default_rng(seed).standard_normal(n)

@@ -51,7 +51,15 @@ class RobustConfig(BaseModel):
 
 class RefineConfig(BaseModel):
     """Multiview ICP rounds (stage 7): correspondences between all overlapping scans
-    recomputed with the current global poses, then a warm-started global re-solve."""
+    recomputed with the current global poses, then a warm-started global re-solve.
+
+    Nearest-neighbour pairs under the current poses pull only at the scale of the point
+    spacing and barely at all along a plane (both scans' samples of a face look alike
+    wherever they slide), so on CAD-like parts the rounds stalled near the start
+    (``correspondences="nearest"``). By default each pair is first refined by
+    point-to-plane ICP, which does move along planes as far as the other faces require,
+    and the global solve then reconciles the pairs' refined poses.
+    """
 
     model_config = ConfigDict(extra="forbid")
 
@@ -60,6 +68,12 @@ class RefineConfig(BaseModel):
         (1.0, 0.6, 0.3), description="correspondence distance / feature voxel, per round"
     )
     min_correspondences: int = Field(30, ge=3)
+    correspondences: Literal["pairwise-icp", "nearest"] = Field(
+        "pairwise-icp",
+        description="pairwise-icp: each overlapping pair is first refined by point-to-plane "
+        "ICP from its relative pose under the global poses, and its correspondences carry "
+        "that refined pose exactly; nearest: nearest neighbours under the global poses",
+    )
     dense_voxel_ratio: float | None = Field(
         0.25,
         gt=0,

@@ -1,5 +1,11 @@
 """Stages 6 and 7: robust re-weighting of pairs and multiview ICP refinement.
 
+Refinement, fandisk (CAD part, large planar faces; seed 1, 0.2% noise): nearest-neighbour
+correspondences under the global poses left rotation errors up to 0.41 deg and origin
+errors up to 0.97% of the diagonal after three rounds (0.46 deg / 1.07% before them);
+with each pair first refined by point-to-plane ICP (the default) 0.08 deg / 0.17%. Real
+bunny: rotation max 0.215 -> 0.199 deg, translation max 0.55 -> 0.37 mm.
+
 Both re-solve the global problem warm-started from the current rotations.
 """
 
@@ -13,6 +19,7 @@ import numpy as np
 from mvreg.config import RegisterConfig, RobustConfig
 from mvreg.geometry import invert_transform, transform_points
 from mvreg.pairwise import PreprocessedScan, Tracks, mutual_correspondences
+from mvreg.pairwise.align import icp_point_to_plane
 from mvreg.pairwise.tracks import tracks_from_correspondences
 from mvreg.solver import SolveResult, solve
 from mvreg.solver.reg_admm import IterationRecord
@@ -175,6 +182,35 @@ def _dense_levels(scans, pre, voxel: float):
     return pts, nrm, trees
 
 
+def _pair_icp(pts_i, nrm_i, tree_i, pts_j, nrm_j, T_i_j, max_dist, min_cos, max_source=3000):
+    """Point-to-plane ICP of scan j onto scan i from ``T_i_j``, within ``max_dist``.
+
+    Falls back on ``T_i_j`` when the result moves some point of scan j by more than
+    ``max_dist`` (ICP drifting along a direction the overlap does not constrain).
+    """
+    stride = max(1, int(np.ceil(len(pts_j) / max_source)))
+    src, src_n = pts_j[::stride], nrm_j[::stride]
+    T = icp_point_to_plane(src, src_n, pts_i, nrm_i, tree_i, T_i_j, max_dist, 30, min_cos)
+    moved = np.linalg.norm(transform_points(T, src) - transform_points(T_i_j, src), axis=1)
+    return T if float(np.max(moved, initial=0.0)) <= max_dist else T_i_j
+
+
+def _pair_points(num_scans: int, pairs: np.ndarray, virtual: list) -> tuple[list, list]:
+    """Per scan, the stacked points of all its pairs; per pair, indices into them."""
+    per_scan = [[] for _ in range(num_scans)]
+    count = np.zeros(num_scans, np.int64)
+    corr = []
+    for (i, j), (a, b) in zip(pairs, virtual, strict=True):
+        idx = []
+        for s, p in ((i, a), (j, b)):
+            per_scan[s].append(p)
+            idx.append(np.arange(count[s], count[s] + len(p)))
+            count[s] += len(p)
+        corr.append((idx[0], idx[1]))
+    pts = [np.vstack(p) if p else np.zeros((0, 3)) for p in per_scan]
+    return pts, corr
+
+
 def refine_rounds(
     pre: Sequence[PreprocessedScan],
     sol: GlobalSolution,
@@ -192,6 +228,13 @@ def refine_rounds(
     ``pairs`` restricts the rounds to those scan pairs (default: every registered pair
     whose world bounding boxes overlap); ``tracks_cfg`` overrides ``cfg.tracks`` (normal
     agreement, per-pair thinning, conflict splitting).
+
+    With ``cfg.refine.correspondences == "pairwise-icp"`` (default) each pair is first
+    refined by point-to-plane ICP from its relative pose under the global poses
+    (:func:`_pair_icp`); its matched couples are then replaced by their midpoints, written
+    in both scans' frames, so the pair's correspondences state exactly its refined pose and
+    every track has two observations. Residuals for the robust weights are measured under
+    the global poses, so a pair whose refined pose disagrees with the rest is down-weighted.
     """
     tc = tracks_cfg if tracks_cfg is not None else cfg.tracks
     log = []
@@ -212,13 +255,19 @@ def refine_rounds(
             if pairs is None
             else [(i, j) for i, j in pairs if i in sol.T_world_scan and j in sol.T_world_scan]
         )
-        used, corr, dists = [], [], []
+        used, corr, dists, virtual = [], [], [], []
         for i, j in candidates:
             T_i_j = invert_transform(sol.T_world_scan[i]) @ sol.T_world_scan[j]
+            T_match = T_i_j
+            if cfg.refine.correspondences == "pairwise-icp":
+                T_match = _pair_icp(
+                    points[i], normals[i], trees[i], points[j], normals[j], T_i_j,
+                    dist_v * voxel, tc.min_normal_cos,
+                )  # fmt: skip
             idx_i, idx_j = mutual_correspondences(
                 points[i],
                 points[j],
-                T_i_j,
+                T_match,
                 dist_v * voxel,
                 normals_i=normals[i],
                 normals_j=normals[j],
@@ -232,18 +281,28 @@ def refine_rounds(
                 idx_i, idx_j = idx_i[keep], idx_j[keep]
             if len(idx_i) < cfg.refine.min_correspondences:
                 continue
-            moved = transform_points(T_i_j, points[j][idx_j])
+            if cfg.refine.correspondences == "pairwise-icp":
+                # The pair's own points, placed exactly as its refined pose puts them: the
+                # midpoint of each matched couple, in both scans' frames.
+                mid = 0.5 * (points[i][idx_i] + transform_points(T_match, points[j][idx_j]))
+                a, b = mid, transform_points(invert_transform(T_match), mid)
+                virtual.append((a, b))
+            else:
+                a, b = points[i][idx_i], points[j][idx_j]
             used.append((i, j))
             corr.append((idx_i, idx_j))
-            dists.append(np.linalg.norm(points[i][idx_i] - moved, axis=1))
+            dists.append(np.linalg.norm(a - transform_points(T_i_j, b), axis=1))
         if not used:
             break
         pairs_arr = np.array(used, dtype=np.int64)
         # Robust weights per pair from its residual under the current poses.
         med = np.array([float(np.median(d)) for d in dists])
         w = robust_weights(med, voxel, cfg.robust)
+        track_points, track_corr = points, corr
+        if virtual:  # every pair's points are its own: tracks of two observations
+            track_points, track_corr = _pair_points(len(pre), pairs_arr, virtual)
         tracks = tracks_from_correspondences(
-            points, names, pairs_arr, corr, w, distances=dists,
+            track_points, names, pairs_arr, track_corr, w, distances=dists,
             split_conflicts=tc.split_conflicting_tracks,
         )  # fmt: skip
         if tracks.problem is None:

@@ -182,7 +182,7 @@ def _dense_levels(scans, pre, voxel: float):
     return pts, nrm, trees
 
 
-def _pair_icp(pts_i, nrm_i, tree_i, pts_j, nrm_j, T_i_j, max_dist, min_cos, max_source=3000):
+def _pair_icp(pts_i, nrm_i, tree_i, pts_j, nrm_j, T_i_j, max_dist, min_cos, max_source=1500):
     """Point-to-plane ICP of scan j onto scan i from ``T_i_j``, within ``max_dist``.
 
     Falls back on ``T_i_j`` when the result moves some point of scan j by more than

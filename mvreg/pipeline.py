@@ -26,7 +26,13 @@ from mvreg.pairwise import (
     derive_voxel_size,
     preprocess,
 )
-from mvreg.refine import GlobalSolution, refine_rounds, robust_rounds, solve_tracks
+from mvreg.refine import (
+    GlobalSolution,
+    pair_disagreements,
+    refine_rounds,
+    robust_rounds,
+    solve_tracks,
+)
 from mvreg.viz import NullRecorder
 
 
@@ -171,6 +177,7 @@ def register(
         timed("robust")
         prog.stage("refinement", cfg.refine.rounds)
         sol, refine_log = refine_rounds(pre, sol, cfg, callback=on_iteration, scans=scans)
+        weights = _final_check(pre, results, tracks, weights, sol, voxel, cfg, robust_log)
         timed("refine")
     prog.done()
 
@@ -201,6 +208,25 @@ def register(
         if cfg.output.record_pair_correspondences and rec.enabled:
             _record_pairs(rec, sol, names_all)
     return reg
+
+
+def _final_check(pre, results, tracks, weights, sol, voxel, cfg, robust_log) -> np.ndarray:
+    """Zero the weight of accepted pairs whose own pose disagrees with the final poses by
+    more than ``cfg.robust.final_disagreement_voxels`` (logged in ``robust_log``)."""
+    limit = cfg.robust.final_disagreement_voxels
+    if limit is None or not cfg.refine.rounds:
+        return weights
+    dis = pair_disagreements(pre, results, sol.T_world_scan, voxel)
+    weights = np.array(weights, dtype=np.float64)
+    index = {(int(i), int(j)): p for p, (i, j) in enumerate(tracks.pairs)}
+    zeroed = []
+    for (i, j), d in dis.items():
+        p = index.get((i, j))
+        if p is not None and weights[p] > 0 and d > limit * voxel:
+            weights[p] = 0.0
+            zeroed.append({"scans": [pre[i].name, pre[j].name], "voxels": d / voxel})
+    robust_log.append({"final_check": True, "limit_voxels": limit, "pairs_zeroed": zeroed})
+    return weights
 
 
 def _record_pairs(rec, sol: GlobalSolution, names: list[str]) -> None:

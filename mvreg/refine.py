@@ -148,6 +148,29 @@ def robust_rounds(
     return sol, weights, log
 
 
+def pair_disagreements(
+    pre: Sequence[PreprocessedScan],
+    results: Sequence,
+    T_world_scan: dict[int, np.ndarray],
+    max_dist: float,
+) -> dict[tuple[int, int], float]:
+    """{(i, j): median distance} between where each accepted pair's own pose and the
+    final poses put scan j's points that overlap scan i (within ``max_dist`` of it under
+    the final poses; all of scan j's points when none do). Pairs with an unregistered scan
+    are left out."""
+    out = {}
+    for r in results:
+        if not r.accepted or r.i not in T_world_scan or r.j not in T_world_scan:
+            continue
+        T_final = invert_transform(T_world_scan[r.i]) @ T_world_scan[r.j]
+        final = transform_points(T_final, pre[r.j].points)
+        d, _ = pre[r.i].fine_tree().query(final, distance_upper_bound=max_dist)
+        sel = np.isfinite(d) if np.count_nonzero(np.isfinite(d)) >= 3 else slice(None)
+        own = transform_points(r.T_i_j, pre[r.j].points[sel])
+        out[(r.i, r.j)] = float(np.median(np.linalg.norm(own - final[sel], axis=1)))
+    return out
+
+
 def overlapping_pairs(
     pre: Sequence[PreprocessedScan], T_world_scan: dict[int, np.ndarray], margin: float
 ) -> list[tuple[int, int]]:
@@ -185,14 +208,14 @@ def _dense_levels(scans, pre, voxel: float):
 def _pair_icp(pts_i, nrm_i, tree_i, pts_j, nrm_j, T_i_j, max_dist, min_cos, max_source=1500):
     """Point-to-plane ICP of scan j onto scan i from ``T_i_j``, within ``max_dist``.
 
-    Falls back on ``T_i_j`` when the result moves some point of scan j by more than
-    ``max_dist`` (ICP drifting along a direction the overlap does not constrain).
+    None when the result moves some point of scan j by more than ``3 * max_dist`` (ICP
+    drifting along a direction the overlap does not constrain, or into another fit).
     """
     stride = max(1, int(np.ceil(len(pts_j) / max_source)))
     src, src_n = pts_j[::stride], nrm_j[::stride]
     T = icp_point_to_plane(src, src_n, pts_i, nrm_i, tree_i, T_i_j, max_dist, 30, min_cos)
     moved = np.linalg.norm(transform_points(T, src) - transform_points(T_i_j, src), axis=1)
-    return T if float(np.max(moved, initial=0.0)) <= max_dist else T_i_j
+    return T if float(np.max(moved, initial=0.0)) <= 3.0 * max_dist else None
 
 
 def _pair_points(num_scans: int, pairs: np.ndarray, virtual: list) -> tuple[list, list]:
@@ -233,7 +256,8 @@ def refine_rounds(
     refined by point-to-plane ICP from its relative pose under the global poses
     (:func:`_pair_icp`); its matched couples are then replaced by their midpoints, written
     in both scans' frames, so the pair's correspondences state exactly its refined pose and
-    every track has two observations. Residuals for the robust weights are measured under
+    every track has two observations (a pair whose ICP runs away keeps its nearest
+    neighbours under the global poses). Residuals for the robust weights are measured under
     the global poses, so a pair whose refined pose disagrees with the rest is down-weighted.
     """
     tc = tracks_cfg if tracks_cfg is not None else cfg.tracks
@@ -258,12 +282,14 @@ def refine_rounds(
         used, corr, dists, virtual = [], [], [], []
         for i, j in candidates:
             T_i_j = invert_transform(sol.T_world_scan[i]) @ sol.T_world_scan[j]
-            T_match = T_i_j
+            T_match = None
             if cfg.refine.correspondences == "pairwise-icp":
                 T_match = _pair_icp(
                     points[i], normals[i], trees[i], points[j], normals[j], T_i_j,
                     dist_v * voxel, tc.min_normal_cos,
                 )  # fmt: skip
+            refined = T_match is not None
+            T_match = T_i_j if T_match is None else T_match
             idx_i, idx_j = mutual_correspondences(
                 points[i],
                 points[j],
@@ -281,14 +307,14 @@ def refine_rounds(
                 idx_i, idx_j = idx_i[keep], idx_j[keep]
             if len(idx_i) < cfg.refine.min_correspondences:
                 continue
-            if cfg.refine.correspondences == "pairwise-icp":
+            a, b = points[i][idx_i], points[j][idx_j]
+            if refined:
                 # The pair's own points, placed exactly as its refined pose puts them: the
                 # midpoint of each matched couple, in both scans' frames.
-                mid = 0.5 * (points[i][idx_i] + transform_points(T_match, points[j][idx_j]))
-                a, b = mid, transform_points(invert_transform(T_match), mid)
-                virtual.append((a, b))
-            else:
-                a, b = points[i][idx_i], points[j][idx_j]
+                a = 0.5 * (a + transform_points(T_match, b))
+                b = transform_points(invert_transform(T_match), a)
+            if cfg.refine.correspondences == "pairwise-icp":
+                virtual.append((a, b))  # ICP failed: the pair's nearest neighbours, as before
             used.append((i, j))
             corr.append((idx_i, idx_j))
             dists.append(np.linalg.norm(a - transform_points(T_i_j, b), axis=1))

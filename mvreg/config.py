@@ -53,6 +53,13 @@ class RobustConfig(BaseModel):
     scale_factor: float = Field(3.0, gt=0)
     min_scale_voxels: float = Field(0.25, gt=0)
     zero_weight: float = Field(0.05, ge=0, lt=1)
+    cycle_check_voxels: float | None = Field(
+        2.0,
+        gt=0,
+        description="before the solve, accepted pairs contradicted by more cycles of 3-4 "
+        "pairs than confirm them (discrepancy above this many feature voxels) start at "
+        "weight 0 (mvreg.pairwise.consistency); None: off",
+    )
     final_disagreement_voxels: float | None = Field(
         1.0,
         gt=0,

@@ -120,16 +120,21 @@ def robust_rounds(
     voxel: float,
     cfg: RegisterConfig,
     callback: Callable | None = None,
+    weights: np.ndarray | None = None,
 ) -> tuple[GlobalSolution, np.ndarray, list[dict]]:
     """Iteratively re-weight pairs by their residual under the global poses and re-solve.
 
-    Returns the final solution, the final pair weights (P,) and a log per round.
+    ``weights``: the pair weights ``sol`` was solved with (default all 1); a pair of
+    weight 0 stays at 0. Returns the final solution, the final pair weights (P,) and a log
+    per round.
     """
-    weights = np.ones(len(tracks.pairs))
+    weights = np.ones(len(tracks.pairs)) if weights is None else np.asarray(weights, float)
+    fixed = weights == 0
     log = []
     for k in range(cfg.robust.rounds):
         res = pair_residuals(sol.tracks, sol.T_world_scan)
         new = robust_weights(res, voxel, cfg.robust)
+        new[fixed] = 0.0
         log.append(
             {
                 "round": k + 1,

@@ -78,7 +78,7 @@ class RefineConfig(BaseModel):
     wherever they slide), so on CAD-like parts the rounds stalled near the start
     (``correspondences="nearest"``). By default each pair is first refined by
     point-to-plane ICP, which does move along planes as far as the other faces require,
-    and the global solve then reconciles the pairs' refined poses.
+    and its correspondences are taken under that refined pose.
     """
 
     model_config = ConfigDict(extra="forbid")
@@ -91,8 +91,8 @@ class RefineConfig(BaseModel):
     correspondences: Literal["pairwise-icp", "nearest"] = Field(
         "pairwise-icp",
         description="pairwise-icp: each overlapping pair is first refined by point-to-plane "
-        "ICP from its relative pose under the global poses, and its correspondences carry "
-        "that refined pose exactly; nearest: nearest neighbours under the global poses",
+        "ICP from its relative pose under the global poses and matched (mutual nearest "
+        "neighbours) under that pose; nearest: matched under the global poses",
     )
     dense_voxel_ratio: float | None = Field(
         0.25,

@@ -2,9 +2,16 @@
 
 Refinement, fandisk (CAD part, large planar faces; seed 1, 0.2% noise): nearest-neighbour
 correspondences under the global poses left rotation errors up to 0.41 deg and origin
-errors up to 0.97% of the diagonal after three rounds (0.46 deg / 1.07% before them);
-with each pair first refined by point-to-plane ICP (the default) 0.08 deg / 0.17%. Real
-bunny: rotation max 0.215 -> 0.199 deg, translation max 0.55 -> 0.37 mm.
+errors up to 0.97% of the diagonal after three rounds (0.46 deg / 1.07% before them):
+along a face, samples of two scans look alike wherever they slide, so the rounds barely
+move. By default each overlapping pair is first refined by point-to-plane ICP from its
+relative pose under the global poses and matched under that pose.
+
+Tried and not kept: encoding each pair's refined pose exactly (midpoints of its matched
+couples, two-observation tracks) did better on fandisk and the teapot but doubled the
+rotation errors on smooth shapes (builtin object 0.20 deg against 0.15 before; cow 0.11
+against 0.04 with the kept variant); degeneracy-aware ICP steps (eigenvalue cut-off of the
+normal matrix) left the rounds stuck where they started.
 
 Both re-solve the global problem warm-started from the current rotations.
 """
@@ -12,13 +19,16 @@ Both re-solve the global problem warm-started from the current rotations.
 from __future__ import annotations
 
 from collections.abc import Callable, Sequence
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
+from functools import partial
 
 import numpy as np
 
 from mvreg.config import RegisterConfig, RobustConfig
 from mvreg.geometry import invert_transform, transform_points
 from mvreg.pairwise import PreprocessedScan, Tracks, mutual_correspondences
+from mvreg.pairwise._threads import single_threaded_blas
 from mvreg.pairwise.align import icp_point_to_plane
 from mvreg.pairwise.tracks import tracks_from_correspondences
 from mvreg.solver import SolveResult, solve
@@ -210,7 +220,7 @@ def _dense_levels(scans, pre, voxel: float):
     return pts, nrm, trees
 
 
-def _pair_icp(pts_i, nrm_i, tree_i, pts_j, nrm_j, T_i_j, max_dist, min_cos, max_source=1500):
+def _pair_icp(pts_i, nrm_i, tree_i, pts_j, nrm_j, T_i_j, max_dist, min_cos, max_source=3000):
     """Point-to-plane ICP of scan j onto scan i from ``T_i_j``, within ``max_dist``.
 
     None when the result moves some point of scan j by more than ``3 * max_dist`` (ICP
@@ -223,20 +233,41 @@ def _pair_icp(pts_i, nrm_i, tree_i, pts_j, nrm_j, T_i_j, max_dist, min_cos, max_
     return T if float(np.max(moved, initial=0.0)) <= 3.0 * max_dist else None
 
 
-def _pair_points(num_scans: int, pairs: np.ndarray, virtual: list) -> tuple[list, list]:
-    """Per scan, the stacked points of all its pairs; per pair, indices into them."""
-    per_scan = [[] for _ in range(num_scans)]
-    count = np.zeros(num_scans, np.int64)
-    corr = []
-    for (i, j), (a, b) in zip(pairs, virtual, strict=True):
-        idx = []
-        for s, p in ((i, a), (j, b)):
-            per_scan[s].append(p)
-            idx.append(np.arange(count[s], count[s] + len(p)))
-            count[s] += len(p)
-        corr.append((idx[0], idx[1]))
-    pts = [np.vstack(p) if p else np.zeros((0, 3)) for p in per_scan]
-    return pts, corr
+def _match_pair(pair, sol, points, normals, trees, max_dist, cfg, tc):
+    """One pair of a refinement round: (pair, (idx_i, idx_j), distances under the global
+    poses), or None when the pair has too few correspondences. The correspondences are
+    the mutual nearest neighbours under the pair's ICP-refined pose (pairwise-icp) or under
+    the global poses (nearest, or when ICP runs away)."""
+    i, j = pair
+    T_i_j = invert_transform(sol.T_world_scan[i]) @ sol.T_world_scan[j]
+    T_match = None
+    if cfg.refine.correspondences == "pairwise-icp":
+        T_match = _pair_icp(
+            points[i], normals[i], trees[i], points[j], normals[j], T_i_j, max_dist,
+            tc.min_normal_cos,
+        )  # fmt: skip
+    T_match = T_i_j if T_match is None else T_match
+    idx_i, idx_j = mutual_correspondences(
+        points[i],
+        points[j],
+        T_match,
+        max_dist,
+        normals_i=normals[i],
+        normals_j=normals[j],
+        min_normal_cos=tc.min_normal_cos,
+        tree_i=trees[i],
+        tree_j=trees[j],
+    )
+    cap = tc.max_correspondences_per_pair
+    if cap is not None and len(idx_i) > cap:  # evenly thinned, as in pair_correspondences
+        keep = np.linspace(0, len(idx_i) - 1, cap).round().astype(np.int64)
+        idx_i, idx_j = idx_i[keep], idx_j[keep]
+    if len(idx_i) < cfg.refine.min_correspondences:
+        return None
+    # Residuals under the global poses: a pair whose own optimum disagrees with them
+    # shows it in its robust weight.
+    moved = transform_points(T_i_j, points[j][idx_j])
+    return (i, j), (idx_i, idx_j), np.linalg.norm(points[i][idx_i] - moved, axis=1)
 
 
 def refine_rounds(
@@ -259,11 +290,10 @@ def refine_rounds(
 
     With ``cfg.refine.correspondences == "pairwise-icp"`` (default) each pair is first
     refined by point-to-plane ICP from its relative pose under the global poses
-    (:func:`_pair_icp`); its matched couples are then replaced by their midpoints, written
-    in both scans' frames, so the pair's correspondences state exactly its refined pose and
-    every track has two observations (a pair whose ICP runs away keeps its nearest
-    neighbours under the global poses). Residuals for the robust weights are measured under
-    the global poses, so a pair whose refined pose disagrees with the rest is down-weighted.
+    (:func:`_pair_icp`, run on ``cfg.align.num_workers`` threads) and matched under that
+    pose (a pair whose ICP runs away is matched under the global poses). Residuals for the
+    robust weights are measured under the global poses, so a pair whose refined pose
+    disagrees with the rest is down-weighted.
     """
     tc = tracks_cfg if tracks_cfg is not None else cfg.tracks
     log = []
@@ -284,56 +314,26 @@ def refine_rounds(
             if pairs is None
             else [(i, j) for i, j in pairs if i in sol.T_world_scan and j in sol.T_world_scan]
         )
-        used, corr, dists, virtual = [], [], [], []
-        for i, j in candidates:
-            T_i_j = invert_transform(sol.T_world_scan[i]) @ sol.T_world_scan[j]
-            T_match = None
-            if cfg.refine.correspondences == "pairwise-icp":
-                T_match = _pair_icp(
-                    points[i], normals[i], trees[i], points[j], normals[j], T_i_j,
-                    dist_v * voxel, tc.min_normal_cos,
-                )  # fmt: skip
-            refined = T_match is not None
-            T_match = T_i_j if T_match is None else T_match
-            idx_i, idx_j = mutual_correspondences(
-                points[i],
-                points[j],
-                T_match,
-                dist_v * voxel,
-                normals_i=normals[i],
-                normals_j=normals[j],
-                min_normal_cos=tc.min_normal_cos,
-                tree_i=trees[i],
-                tree_j=trees[j],
-            )
-            cap = tc.max_correspondences_per_pair
-            if cap is not None and len(idx_i) > cap:  # evenly thinned, as in pair_correspondences
-                keep = np.linspace(0, len(idx_i) - 1, cap).round().astype(np.int64)
-                idx_i, idx_j = idx_i[keep], idx_j[keep]
-            if len(idx_i) < cfg.refine.min_correspondences:
-                continue
-            a, b = points[i][idx_i], points[j][idx_j]
-            if refined:
-                # The pair's own points, placed exactly as its refined pose puts them: the
-                # midpoint of each matched couple, in both scans' frames.
-                a = 0.5 * (a + transform_points(T_match, b))
-                b = transform_points(invert_transform(T_match), a)
-            if cfg.refine.correspondences == "pairwise-icp":
-                virtual.append((a, b))  # ICP failed: the pair's nearest neighbours, as before
-            used.append((i, j))
-            corr.append((idx_i, idx_j))
-            dists.append(np.linalg.norm(a - transform_points(T_i_j, b), axis=1))
+
+        match = partial(
+            _match_pair, sol=sol, points=points, normals=normals, trees=trees,
+            max_dist=dist_v * voxel, cfg=cfg, tc=tc,
+        )  # fmt: skip
+        used, corr, dists = [], [], []
+        with single_threaded_blas(), ThreadPoolExecutor(cfg.align.num_workers) as pool:
+            for out in pool.map(match, candidates):
+                if out is not None:
+                    used.append(out[0])
+                    corr.append(out[1])
+                    dists.append(out[2])
         if not used:
             break
         pairs_arr = np.array(used, dtype=np.int64)
         # Robust weights per pair from its residual under the current poses.
         med = np.array([float(np.median(d)) for d in dists])
         w = robust_weights(med, voxel, cfg.robust)
-        track_points, track_corr = points, corr
-        if virtual:  # every pair's points are its own: tracks of two observations
-            track_points, track_corr = _pair_points(len(pre), pairs_arr, virtual)
         tracks = tracks_from_correspondences(
-            track_points, names, pairs_arr, track_corr, w, distances=dists,
+            points, names, pairs_arr, corr, w, distances=dists,
             split_conflicts=tc.split_conflicting_tracks,
         )  # fmt: skip
         if tracks.problem is None:

@@ -26,7 +26,14 @@ from mvreg.pairwise import (
     derive_voxel_size,
     preprocess,
 )
-from mvreg.refine import GlobalSolution, refine_rounds, robust_rounds, solve_tracks
+from mvreg.pairwise.consistency import inconsistent_pairs
+from mvreg.refine import (
+    GlobalSolution,
+    pair_disagreements,
+    refine_rounds,
+    robust_rounds,
+    solve_tracks,
+)
 from mvreg.viz import NullRecorder
 
 
@@ -159,18 +166,23 @@ def register(
         step[0] += 1
         rec.log_solver_iteration(step[0], r.objective, r.primal_residual, r.dual_residual, r.rho)
 
-    tracks = build_tracks(pre, results, cfg.tracks)
+    w0, robust_log = _cycle_check(pre, results, cfg)
+    tracks = build_tracks(pre, results, cfg.tracks, pair_weights=w0)
     sol: GlobalSolution | None = None
     weights = np.zeros(len(tracks.pairs))
-    robust_log, refine_log = [], []
+    refine_log = []
     if tracks.problem is not None:
         sol = solve_tracks(tracks, cfg, callback=on_iteration)
         timed("tracks_and_solve")
         prog.stage("robust re-weighting")
-        sol, weights, robust_log = robust_rounds(tracks, sol, voxel, cfg, callback=on_iteration)
+        sol, weights, log = robust_rounds(
+            tracks, sol, voxel, cfg, callback=on_iteration, weights=w0
+        )
+        robust_log += log
         timed("robust")
         prog.stage("refinement", cfg.refine.rounds)
         sol, refine_log = refine_rounds(pre, sol, cfg, callback=on_iteration, scans=scans)
+        weights = _final_check(pre, results, tracks, weights, sol, voxel, cfg, robust_log)
         timed("refine")
     prog.done()
 
@@ -201,6 +213,43 @@ def register(
         if cfg.output.record_pair_correspondences and rec.enabled:
             _record_pairs(rec, sol, names_all)
     return reg
+
+
+def _cycle_check(pre, results, cfg) -> tuple[np.ndarray, list[dict]]:
+    """Initial weights of the accepted pairs: 0 for those the cycle check sets aside."""
+    accepted = [k for k, r in enumerate(results) if r.accepted]
+    w0 = np.ones(len(accepted))
+    if cfg.robust.cycle_check_voxels is None:
+        return w0, []
+    out = inconsistent_pairs(pre, results, cfg.robust.cycle_check_voxels)
+    position = {k: n for n, k in enumerate(accepted)}
+    for k, _ in out:
+        w0[position[k]] = 0.0
+    log = {
+        "cycle_check": True,
+        "limit_voxels": cfg.robust.cycle_check_voxels,
+        "pairs_zeroed": [{"scans": list(results[k].names), **info} for k, info in out],
+    }
+    return w0, [log]
+
+
+def _final_check(pre, results, tracks, weights, sol, voxel, cfg, robust_log) -> np.ndarray:
+    """Zero the weight of accepted pairs whose own pose disagrees with the final poses by
+    more than ``cfg.robust.final_disagreement_voxels`` (logged in ``robust_log``)."""
+    limit = cfg.robust.final_disagreement_voxels
+    if limit is None or not cfg.refine.rounds:
+        return weights
+    dis = pair_disagreements(pre, results, sol.T_world_scan, voxel)
+    weights = np.array(weights, dtype=np.float64)
+    index = {(int(i), int(j)): p for p, (i, j) in enumerate(tracks.pairs)}
+    zeroed = []
+    for (i, j), d in dis.items():
+        p = index.get((i, j))
+        if p is not None and weights[p] > 0 and d > limit * voxel:
+            weights[p] = 0.0
+            zeroed.append({"scans": [pre[i].name, pre[j].name], "voxels": d / voxel})
+    robust_log.append({"final_check": True, "limit_voxels": limit, "pairs_zeroed": zeroed})
+    return weights
 
 
 def _record_pairs(rec, sol: GlobalSolution, names: list[str]) -> None:

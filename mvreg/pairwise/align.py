@@ -11,14 +11,25 @@ Per pair (i, j), mapping scan j into scan i's frame (``T_i_j``):
    a triple must keep its edge lengths (ratio >= ``ransac_edge_length_ratio``) and its
    normals (angle <= ``ransac_normal_angle_deg``); hypotheses are ranked by how many
    matches they explain within ``ransac_distance_voxels * v``, the number of draws
-   adapts to the best inlier ratio (``ransac_confidence``), and the best few are
-   re-ranked by how much of the whole scan they put onto the other.
+   adapts to the best inlier ratio (``ransac_confidence``), and the best
+   ``ransac_validate_top`` *distinct* hypotheses (near-duplicates removed) are re-ranked by
+   how much of the whole scan they put onto the other.
    Open3D's ``registration_ransac_based_on_feature_matching`` (``ransac_backend="open3d"``)
    is kept as an alternative: it is slower here and, with more than one thread, not
    reproducible (its threads share one random generator).
 3. *Point-to-plane ICP* (NumPy + SciPy KD-trees, deterministic): on the feature level,
    then on the fine level (target: all fine points and their tangent planes; source:
    at most ``icp_max_source_points`` of the fine points) with shrinking distances.
+4. *Several hypotheses verified*: on near-symmetric shapes (a body of revolution, a CAD
+   part) the first-ranked hypothesis is often a flip or a turn about an axis, and the
+   right one lies further down. Up to ``ransac_hypotheses_tried`` of them go through ICP
+   and the acceptance rule below: the first one fully; each other one is screened by
+   ``screen_icp_iterations`` feature-level ICP iterations and the loosened rule, and
+   verified fully only when it passes and ends somewhere new (not within a voxel of a pose
+   already tried). Among the accepted ones the pair keeps the one with the most mutual
+   correspondences, discounted by its free-space violation (:func:`_support`); the
+   teapot's flips pass the rule with 0.003-0.004 of their points in free space, the right
+   pose with 0.000 and as many correspondences.
 
 Scores (fine level, after ICP; ``v`` = feature voxel size, ``noise`` = mean of the two
 scans' :attr:`~mvreg.pairwise.preprocess.PreprocessedScan.noise`):
@@ -94,6 +105,12 @@ class AlignConfig(BaseModel):
     ransac_edge_length_ratio: float = Field(0.9, gt=0, lt=1)
     ransac_normal_angle_deg: float = Field(30.0, gt=0, le=180)
     ransac_validate_top: int = Field(8, ge=1, description="hypotheses re-ranked on the scans")
+    ransac_hypotheses_tried: int = Field(
+        8, ge=1, description="distinct RANSAC hypotheses verified (ICP + acceptance rule)"
+    )
+    screen_icp_iterations: int = Field(
+        3, ge=0, description="feature-level ICP iterations before an alternative is screened"
+    )
     icp_coarse_distance_voxels: float = Field(2.0, gt=0, description="feature-level ICP / v")
     icp_fine_distance_voxels: tuple[float, ...] = Field(
         (1.0, 0.5), description="fine-level ICP distances / v, one ICP run each"
@@ -195,6 +212,15 @@ def _triangle_transforms(src: np.ndarray, dst: np.ndarray) -> np.ndarray:
     out[:, :3, :3] = r
     out[:, :3, 3] = dst.mean(axis=1) - np.einsum("bij,bj->bi", r, src.mean(axis=1))
     return out
+
+
+def _same_pose(A: np.ndarray, B: np.ndarray, tol: float, centre: np.ndarray, radius: float):
+    """Whether two maps of a scan (centroid ``centre``, radius ``radius``) move no point of
+    it further than ``tol`` apart (bound: rotation angle x radius + centroid shift)."""
+    cos = (np.trace(A[:3, :3] @ B[:3, :3].T) - 1.0) / 2.0
+    angle = np.arccos(np.clip(cos, -1.0, 1.0))
+    shift = (A[:3, :3] - B[:3, :3]) @ centre + A[:3, 3] - B[:3, 3]
+    return bool(angle * radius + np.linalg.norm(shift) < tol)
 
 
 def _small_rotation(w: np.ndarray) -> np.ndarray:
@@ -330,6 +356,7 @@ def _ransac_numpy(
     needed, drawn, batch = cfg.ransac_max_iterations, 0, 256
     best_counts = np.zeros(0, np.int64)
     best_T = np.zeros((0, 4, 4))
+    pool = 8 * cfg.ransac_validate_top  # near-duplicates are removed at the end
     while drawn < needed:
         draw = rng.integers(0, m, size=(batch, 3))
         drawn += batch
@@ -356,7 +383,7 @@ def _ransac_numpy(
         counts = np.count_nonzero(np.sum((moved - dst) ** 2, axis=2) <= dist2, axis=1)
         best_counts = np.concatenate([best_counts, counts])
         best_T = np.concatenate([best_T, hyp])
-        keep = np.argsort(-best_counts, kind="stable")[: cfg.ransac_validate_top]
+        keep = np.argsort(-best_counts, kind="stable")[:pool]
         best_counts, best_T = best_counts[keep], best_T[keep]
         w = best_counts[0] / m
         if w >= 1.0:
@@ -366,19 +393,28 @@ def _ransac_numpy(
     stats["hypotheses_drawn"] = int(drawn)
     if len(best_T) == 0 or best_counts[0] < 3:
         return np.eye(4), stats
-    # Re-rank the best hypotheses by the share of scan j they bring onto scan i, after a
-    # least-squares fit to each one's inlier matches.
+    # Distinct hypotheses (a near-symmetric shape has several far apart), each fitted to
+    # its inlier matches, re-ranked by the share of scan j they bring onto scan i.
     tree = _feature_level_tree(pre_i)
-    best_fit, best = -1.0, None
+    kept, fits = [], []
+    centre = pre_j.points.mean(axis=0)
+    radius = float(np.max(np.linalg.norm(pre_j.points - centre, axis=1)))
     for T in best_T:
+        if len(kept) >= cfg.ransac_validate_top:
+            break
+        if any(_same_pose(T, K, 3 * v, centre, radius) for K in kept):
+            continue
         moved = transform_points(T, src)
         inl = np.sum((moved - dst) ** 2, axis=1) <= dist2
         if inl.sum() >= 3:
             T = _kabsch(src[inl][None], dst[inl][None])[0]
         d, _ = tree.query(transform_points(T, pre_j.points), distance_upper_bound=np.sqrt(dist2))
-        fit = float(np.mean(np.isfinite(d)))
-        if fit > best_fit:
-            best_fit, best = fit, T
+        kept.append(T)
+        fits.append(float(np.mean(np.isfinite(d))))
+    order = np.argsort(-np.asarray(fits), kind="stable")
+    best, best_fit = kept[order[0]], fits[order[0]]
+    stats["candidates"] = [kept[k] for k in order]
+    stats["candidate_fitness"] = [fits[k] for k in order]
     stats.update(ok=True, ransac_fitness=best_fit, ransac_inlier_ratio=float(best_counts[0] / m))
     return best, stats
 
@@ -599,33 +635,75 @@ def align_pair(
         return _align_pair(pre_i, pre_j, cfg, seed, i, j, feature_basis, ransac, start)
 
 
-def _align_pair(pre_i, pre_j, cfg, seed, i, j, feature_basis, ransac, start) -> PairResult:
+def _verify(pre_i, pre_j, T, cfg) -> tuple[np.ndarray, str, dict, dict]:
+    """ICP from one hypothesis and the acceptance rule: (T, reason, scores, coarse scores).
+
+    Feature-level ICP and scores first; fine ICP and scores only when the loosened rule
+    passes there.
+    """
     v = pre_i.voxel_size
+    T = icp_point_to_plane(
+        pre_j.points, pre_j.normals, pre_i.points, pre_i.normals, _feature_level_tree(pre_i),
+        T, cfg.icp_coarse_distance_voxels * v, cfg.icp_max_iterations, cfg.icp_min_normal_cos,
+    )  # fmt: skip
+    coarse = score_alignment(pre_i, pre_j, T, cfg, level="feature")
+    reason = _decide(coarse, cfg, slack=cfg.coarse_gate_slack)
+    if reason:
+        return T, reason, coarse, coarse
+    stride = max(1, int(np.ceil(len(pre_j.fine_points) / cfg.icp_max_source_points)))
+    src, src_n = pre_j.fine_points[::stride], pre_j.fine_normals[::stride]
+    for dist in cfg.icp_fine_distance_voxels:
+        T = icp_point_to_plane(
+            src, src_n, pre_i.fine_points, pre_i.fine_normals, pre_i.fine_tree(),
+            T, dist * v, cfg.icp_max_iterations, cfg.icp_min_normal_cos,
+        )  # fmt: skip
+    scores = score_alignment(pre_i, pre_j, T, cfg)
+    return T, _decide(scores, cfg), scores, coarse
+
+
+def _support(scores: dict, cfg: AlignConfig) -> float:
+    """Rank of an accepted hypothesis: mutual correspondences, discounted by its share of
+    points in the other view's free space (NaN: no discount)."""
+    fs = scores["free_space_violation"]
+    discount = 1.0 if not np.isfinite(fs) else max(0.0, 1.0 - fs / cfg.max_free_space_violation)
+    return scores["num_correspondences"] * discount
+
+
+def _align_pair(pre_i, pre_j, cfg, seed, i, j, feature_basis, ransac, start) -> PairResult:
     T, stats = ransac(pre_i, pre_j, cfg, seed, feature_basis)
     stats["seconds_ransac"] = time.perf_counter() - start
+    candidates = stats.pop("candidates", [T])[: cfg.ransac_hypotheses_tried]
     reason, scores = "", None
     if not stats["ok"]:
         reason = "feature matching found no consistent alignment"
     else:
-        T = icp_point_to_plane(
-            pre_j.points, pre_j.normals, pre_i.points, pre_i.normals, _feature_level_tree(pre_i),
-            T, cfg.icp_coarse_distance_voxels * v, cfg.icp_max_iterations, cfg.icp_min_normal_cos,
-        )  # fmt: skip
-        coarse = score_alignment(pre_i, pre_j, T, cfg, level="feature")
+        # Every distinct hypothesis is verified: on near-symmetric shapes a wrong one (a
+        # flip, a turn about an axis) can rank first and pass the rule as well.
+        # Alternatives are screened first (a few feature-level ICP iterations, then the
+        # loosened rule) and verified fully only if they pass and lead somewhere new.
+        tried = [_verify(pre_i, pre_j, candidates[0], cfg)]
+        v = pre_i.voxel_size
+        centre = pre_j.points.mean(axis=0)
+        radius = float(np.max(np.linalg.norm(pre_j.points - centre, axis=1)))
+        seen = [tried[0][0]]
+        for T0 in candidates[1:]:
+            T0 = icp_point_to_plane(
+                pre_j.points, pre_j.normals, pre_i.points, pre_i.normals,
+                _feature_level_tree(pre_i), T0, cfg.icp_coarse_distance_voxels * v,
+                cfg.screen_icp_iterations, cfg.icp_min_normal_cos,
+            )  # fmt: skip
+            if any(_same_pose(T0, K, v, centre, radius) for K in seen):
+                continue
+            seen.append(T0)
+            screen = score_alignment(pre_i, pre_j, T0, cfg, level="feature")
+            if not _decide(screen, cfg, slack=cfg.coarse_gate_slack):
+                tried.append(_verify(pre_i, pre_j, T0, cfg))
+                seen.append(tried[-1][0])
+        passed = [t for t in tried if not t[1]]
+        stats["hypotheses_tried"] = len(tried)
+        stats["hypotheses_accepted"] = len(passed)
+        T, reason, scores, coarse = max(passed, key=lambda t: _support(t[2], cfg), default=tried[0])
         stats["coarse"] = coarse
-        reason = _decide(coarse, cfg, slack=cfg.coarse_gate_slack)
-        if not reason:
-            stride = max(1, int(np.ceil(len(pre_j.fine_points) / cfg.icp_max_source_points)))
-            src, src_n = pre_j.fine_points[::stride], pre_j.fine_normals[::stride]
-            for dist in cfg.icp_fine_distance_voxels:
-                T = icp_point_to_plane(
-                    src, src_n, pre_i.fine_points, pre_i.fine_normals, pre_i.fine_tree(),
-                    T, dist * v, cfg.icp_max_iterations, cfg.icp_min_normal_cos,
-                )  # fmt: skip
-            scores = score_alignment(pre_i, pre_j, T, cfg)
-            reason = _decide(scores, cfg)
-        else:
-            scores = coarse
     stats["seconds_icp"] = time.perf_counter() - start - stats["seconds_ransac"]
     if scores is None:
         scores = {"fitness": 0.0, "overlap_ratio": 0.0, "inlier_rmse": float("inf")}

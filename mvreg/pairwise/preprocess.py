@@ -8,7 +8,12 @@ Each scan is kept at two resolutions:
   correspondences that become tracks.
 
 Outliers: points alone in a feature-level voxel (fewer than ``outlier_min_cell_share``
-times the typical count) are dropped first (:func:`outlier_mask`).
+times the typical count) are dropped first (:func:`outlier_mask`). Stray points that share
+a voxel with the surface survive that; on the fine level a point also needs
+``fine_min_neighbours`` other points within two fine voxels (a surface sampled at that
+voxel has about a dozen; not applied by :func:`resample`, which serves refinement). Left
+in, they became fine-level points, pulled at ICP and counted in the free-space test
+(teapot, seed 0, 10% outliers: 10 of 12 scans registered with them, 12 of 12 without).
 
 Voxel size from the data (:func:`derive_voxel_size`): for each scan, the voxel at which
 it keeps about ``target_points_per_scan`` points (voxels holding a single point are not
@@ -71,6 +76,12 @@ class PreprocessConfig(BaseModel):
     fpfh_max_neighbours: int = Field(100, ge=5)
     outlier_min_cell_share: float = Field(
         0.05, ge=0, lt=1, description="drop points in voxels this sparse (0 = keep all)"
+    )
+    fine_min_neighbours: int = Field(
+        3,
+        ge=0,
+        description="fine level: drop points with fewer other points within 2 of its voxels "
+        "(0 = keep all)",
     )
     min_view_facing: float = Field(
         0.8, ge=0, le=1, description="share of normals facing one direction for a 'view'"
@@ -315,8 +326,14 @@ def _preprocess(scan: Scan, v: float, cfg: PreprocessConfig) -> PreprocessedScan
     return out
 
 
-def _resample(raw, voxel: float, cfg: PreprocessConfig, ref_pts, ref_nrm):
+def _resample(raw, voxel: float, cfg: PreprocessConfig, ref_pts, ref_nrm, strays=True):
     down = raw.voxel_down_sample(voxel)
+    if strays and cfg.fine_min_neighbours > 0:
+        pts = np.asarray(down.points)
+        near = cKDTree(pts).query_ball_point(pts, 2.0 * voxel, return_length=True) - 1
+        keep = np.flatnonzero(near >= cfg.fine_min_neighbours)
+        if 10 <= len(keep) < len(pts):
+            down = down.select_by_index(keep)
     down.normals = type(down.normals)()
     _estimate_normals(down, cfg.normal_radius_voxels * voxel, cfg.normal_max_neighbours)
     pts = np.asarray(down.points).copy()
@@ -332,7 +349,9 @@ def resample(
     (P, 3) unit normals, float64, in the scan's local frame.
     """
     cfg = cfg or PreprocessConfig()
-    return _resample(_to_o3d(scan.points), float(voxel_size), cfg, pre.points, pre.normals)
+    return _resample(
+        _to_o3d(scan.points), float(voxel_size), cfg, pre.points, pre.normals, strays=False
+    )
 
 
 def _fibonacci_cap(n: int, max_polar_deg: float = 180.0) -> np.ndarray:

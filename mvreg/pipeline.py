@@ -330,6 +330,8 @@ def _pair_table(results: list[PairResult], tracks, weights) -> list[dict]:
                 "num_correspondences": int(r.num_correspondences),
                 "fitness": r.fitness,
                 "residual_ratio": r.residual_ratio,
+                "free_space_violation": r.free_space_violation,
+                "unseen_violation": r.unseen_violation,
                 "final_weight": w_of.get((r.i, r.j), 0.0) if r.accepted else 0.0,
                 "seconds": r.seconds,
             }

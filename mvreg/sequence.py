@@ -773,6 +773,7 @@ def rescore(
     res.fitness = scores["fitness"]
     res.residual_ratio = scores["residual_ratio"]
     res.free_space_violation = scores["free_space_violation"]
+    res.unseen_violation = scores["unseen_violation"]
     res.stats["median_residual"] = scores["median_residual"]
     res.reason = _decide(scores, cfg)
     res.accepted = not res.reason

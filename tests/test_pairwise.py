@@ -35,8 +35,15 @@ from mvreg.pairwise.align import (
     free_space_violation,
     pair_seed,
     reject_relative_outliers,
+    unseen_violation,
 )
-from mvreg.pairwise.preprocess import outlier_mask, preprocess, view_direction
+from mvreg.pairwise.preprocess import (
+    outlier_mask,
+    preprocess,
+    single_view_axis,
+    view_axis_occlusion,
+    view_direction,
+)
 
 # ----------------------------------------------------------------------------- helpers
 
@@ -160,6 +167,29 @@ def test_view_direction_is_found_for_views_only(synthetic, synthetic_pre):
     assert share > 0.99 and d @ [0.0, 0.6, 0.8] > np.cos(np.radians(4))
 
 
+def test_view_axis_survives_flipped_patches_and_rejects_merged_clouds(synthetic, synthetic_pre):
+    """Spanning-tree orientation can flip whole patches (thin parts); the view axis from
+    unoriented normals does not care, and re-orienting by it repairs them."""
+    pre, T_world_local = synthetic_pre
+    p, true_dir = pre[0], synthetic[3][0]
+    flipped = p.normals * np.where(p.points[:, 0] > np.median(p.points[:, 0]), -1.0, 1.0)[:, None]
+    axis = single_view_axis(p.points, flipped, p.voxel_size)
+    assert np.degrees(np.arccos(abs(axis @ true_dir))) < 8.0
+    repaired = flipped * np.where(flipped @ axis < 0, -1.0, 1.0)[:, None]
+    assert abs(np.mean(np.einsum("ij,ij->i", repaired, p.normals) > 0) - 0.5) > 0.49
+    # Single views are height fields along their axis; the three views merged are not.
+    for q in pre:
+        assert view_axis_occlusion(q.points, q.normals, q.voxel_size)[1] < 0.15
+    merged_pts = np.vstack(
+        [transform_points(T, q.points) for T, q in zip(T_world_local, pre, strict=True)]
+    )
+    merged_nrm = np.vstack(
+        [q.normals @ T[:3, :3].T for T, q in zip(T_world_local, pre, strict=True)]
+    )
+    assert view_axis_occlusion(merged_pts, merged_nrm, p.voxel_size)[1] > 0.3
+    assert single_view_axis(merged_pts, merged_nrm, p.voxel_size) is None
+
+
 def test_isolated_outliers_are_removed(synthetic):
     scan = synthetic[0][0]
     rng = np.random.default_rng(1)
@@ -210,6 +240,13 @@ def test_synthetic_pair_is_accurate_and_scored_honestly(synthetic_pre):
     turn = Rotation.from_rotvec(np.radians(20) * pre[0].view_direction).as_matrix()
     turned = make_transform(turn, centre - turn @ centre) @ truth
     assert free_space_violation(pre[0], pre[1], turned) > 0.05
+    # Unseen: the right pose puts nothing where the other view saw only background; turned
+    # by 20 or 90 degrees, parts of the surface end up there.
+    assert result.unseen_violation < 0.005 and unseen_violation(pre[0], pre[1], truth) < 0.005
+    assert unseen_violation(pre[0], pre[1], turned) > 0.03
+    turn = Rotation.from_rotvec(np.radians(90) * pre[0].view_direction).as_matrix()
+    turned = make_transform(turn, centre - turn @ centre) @ truth
+    assert unseen_violation(pre[0], pre[1], turned) > 0.2
 
 
 def test_non_overlapping_pair_is_rejected(synthetic_pre):

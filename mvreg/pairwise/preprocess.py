@@ -27,9 +27,9 @@ a minimum spanning tree (Open3D ``orient_normals_consistent_tangent_plane``). Pr
 breaks on thin parts (a bunny's ears, a teapot's handle) and flips whole patches (38% of
 one synthetic bunny view), so a scan that is a single view (:func:`single_view_axis`: a
 height field along the axis its unoriented normals best avoid being perpendicular to) has
-each normal's sign set by that axis instead. Then one sign per scan is chosen from the first cue the data gives: the normals stored in the file,
-else a sensor origin stored in the file, else "outward" -- a partial scan of an object's
-exterior is convex on balance, so outward normals have sum_p n_p . (p - centroid) > 0.
+each normal's sign set by that axis instead. Then one sign per scan is chosen from the
+first cue the data gives: the normals stored in the file, else a sensor origin stored in
+the file, else "outward" -- a partial scan of an object's exterior is convex on balance, so outward normals have sum_p n_p . (p - centroid) > 0.
 Outward is also towards the sensor for any scan taken from outside the object. No cue
 assumes the sensor sits at the origin.
 

@@ -30,8 +30,9 @@ height field along the axis its unoriented normals best avoid being perpendicula
 each normal's sign set by that axis instead. Then one sign per scan is chosen from the
 first cue the data gives: the normals stored in the file, else a sensor origin stored in
 the file, else "outward" -- a partial scan of an object's exterior is convex on balance,
-so outward normals have sum_p n_p . (p - centroid) > 0. Outward is also towards the sensor for any scan taken from outside the object. No cue
-assumes the sensor sits at the origin.
+so outward normals have sum_p n_p . (p - centroid) > 0. Outward is also towards the
+sensor for any scan taken from outside the object. No cue assumes the sensor sits at the
+origin.
 
 View direction: a range scan only holds surfaces that face its sensor, so one direction
 ``d`` has ``n . d > 0`` for (nearly) all its oriented normals. :func:`view_direction`

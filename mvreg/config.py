@@ -17,6 +17,7 @@ from mvreg.errors import ConfigError
 from mvreg.pairwise.align import AlignConfig
 from mvreg.pairwise.candidates import PairsConfig
 from mvreg.pairwise.preprocess import PreprocessConfig
+from mvreg.pairwise.search import SearchConfig
 from mvreg.pairwise.tracks import TracksConfig
 
 
@@ -125,6 +126,7 @@ class RegisterConfig(BaseModel):
     preprocess: PreprocessConfig = Field(default_factory=PreprocessConfig)
     pairs: PairsConfig = Field(default_factory=PairsConfig)
     align: AlignConfig = Field(default_factory=AlignConfig)
+    search: SearchConfig = Field(default_factory=SearchConfig)
     tracks: TracksConfig = Field(default_factory=TracksConfig)
     solve: SolveConfig = Field(default_factory=SolveConfig)
     robust: RobustConfig = Field(default_factory=RobustConfig)

@@ -50,11 +50,23 @@ class PoseErrors:
         }
 
 
-def pose_errors(T_est: np.ndarray, T_true: np.ndarray) -> PoseErrors:
-    """Errors of (M, d+1, d+1) world_from_local estimates against the truth."""
+def pose_errors(
+    T_est: np.ndarray, T_true: np.ndarray, at: np.ndarray | None = None
+) -> PoseErrors:
+    """Errors of (M, d+1, d+1) world_from_local estimates against the truth.
+
+    Translation errors are those of each local frame's origin, or, with ``at`` ((M, d)
+    points in the local frames, e.g. each scan's centroid), of those points: the same as
+    moving each local origin there first. A local origin far from the data (a scanner
+    two object sizes away, or a random frame) turns a small rotation error into a large
+    origin error; the error at the centroid is where the scan's points actually are.
+    """
     d = T_est.shape[-1] - 1
     r_e, t_e = T_est[:, :d, :d], T_est[:, :d, d]
     r_t, t_t = T_true[:, :d, :d], T_true[:, :d, d]
+    if at is not None:
+        t_e = t_e + np.einsum("mij,mj->mi", r_e, at)
+        t_t = t_t + np.einsum("mij,mj->mi", r_t, at)
     return PoseErrors(rotation_errors_deg(r_e, r_t), translation_errors(r_e, t_e, r_t, t_t))
 
 

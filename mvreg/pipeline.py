@@ -1,6 +1,7 @@
 """register(): a folder of scans in, globally aligned poses out. Reads as its stages:
 
-load -> preprocess -> candidate pairs -> pairwise alignment -> tracks -> global solve
+load -> preprocess -> candidate pairs -> pairwise alignment (rotation search for scans it
+leaves unconnected) -> tracks -> global solve
 -> robust re-weighting -> multiview refinement -> evaluation.
 """
 
@@ -27,6 +28,7 @@ from mvreg.pairwise import (
     preprocess,
 )
 from mvreg.pairwise.consistency import inconsistent_pairs
+from mvreg.pairwise.search import connect_unconnected
 from mvreg.refine import (
     GlobalSolution,
     pair_disagreements,
@@ -155,6 +157,7 @@ def register(
     pairs = candidate_pairs(pre, cfg.pairs)
     prog.stage("pairs", len(pairs))
     results = align_pairs(pre, pairs, cfg.align, cfg.seed, progress=lambda _r: prog.advance())
+    results = connect_unconnected(pre, results, cfg.align, cfg.search)
     if pair_hook is not None:
         results = pair_hook(pre, results)
     timed("pairwise")
@@ -354,11 +357,15 @@ def _evaluate(reg: Registration, pre, truth) -> None:
             est = np.stack([reg.T_world_scan[n] for n in common])
             tru = np.stack([np.asarray(truth[n]) for n in common])
             err = pose_errors(est, tru)
+            centroids = np.stack([reg.scans[idx[n]].points.mean(axis=0) for n in common])
+            at_centroid = pose_errors(est, tru, at=centroids).translation
             reg.truth_errors = {
                 "scans": common,
                 "rotation_deg": err.rotation_deg.tolist(),
                 "translation": err.translation.tolist(),
                 **err.summary(),
+                "translation_at_centroid": at_centroid.tolist(),
+                "translation_at_centroid_max": float(at_centroid.max()),
             }
             tw = [transform_points(np.asarray(truth[n]), reg.scans[idx[n]].points) for n in common]
             reg.truth_errors["truth_overlap_residual"] = overlap_residual(

@@ -145,6 +145,7 @@ def run_synthetic(mesh: Path, seed: int, condition: str, tmp: Path) -> dict:
         "scans": len(reg.scan_names),
         "rot_max": e.get("rotation_deg_max", float("nan")),
         "tr_max_pct": 100 * e.get("translation_max", float("nan")) / diag,
+        "trc_max_pct": 100 * e.get("translation_at_centroid_max", float("nan")) / diag,
         "wrong_found": found,
         "wall": wall,
         "certified": reg.solve.certificate.certified if reg.solve is not None else False,

@@ -230,3 +230,25 @@ def test_absurd_parameters(tmp_path):
     assert r.exit_code == 2 and "unknown solver" in r.output
     r = runner.invoke(app, ["register", str(d), "--out", str(tmp_path / "o"), "--voxel-size", "0"])
     assert r.exit_code == 2
+
+
+def test_translation_error_at_the_centroid_ignores_where_the_frame_origin_is():
+    """A 0.3 degree turn of a scan about its own centroid moves its points little, but
+    moves a frame origin three object sizes away by 1.6% of the object size."""
+    from mvreg.geometry import make_transform
+
+    rng = np.random.default_rng(0)
+    T_true = np.stack(
+        [make_transform(Rotation.random(random_state=rng).as_matrix(), 0) for _ in range(4)]
+    )
+    centroids = rng.normal(scale=3.0, size=(4, 3))  # local frames: origin ~3 units from the data
+    centroids[3] = [3.0, 0.0, 0.0]
+    turn = make_transform(Rotation.from_rotvec([0, 0, np.radians(0.3)]).as_matrix(), 0)
+    about = make_transform(np.eye(3), centroids[3])
+    T_est = T_true.copy()
+    T_est[3] = T_true[3] @ about @ turn @ np.linalg.inv(about)
+    at_origin = pose_errors(T_est, T_true).translation
+    at_centroid = pose_errors(T_est, T_true, at=centroids).translation
+    # 3 * 0.3 deg in radians = 0.0157 at the origin, shared with the others by the gauge
+    assert at_origin[3] > 0.01
+    assert at_centroid[3] < 0.3 * at_origin[3]

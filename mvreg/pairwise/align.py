@@ -827,6 +827,7 @@ def align_pairs(
         _feature_level_tree(p)
         _reduced_tree(p, basis)
         _depth_grid(p)
+        _lateral_tree(p)
 
     def run(pair: tuple[int, int]) -> PairResult:
         i, j = pair

@@ -50,9 +50,7 @@ class PoseErrors:
         }
 
 
-def pose_errors(
-    T_est: np.ndarray, T_true: np.ndarray, at: np.ndarray | None = None
-) -> PoseErrors:
+def pose_errors(T_est: np.ndarray, T_true: np.ndarray, at: np.ndarray | None = None) -> PoseErrors:
     """Errors of (M, d+1, d+1) world_from_local estimates against the truth.
 
     Translation errors are those of each local frame's origin, or, with ``at`` ((M, d)

@@ -25,7 +25,7 @@ from mvreg.pairwise import (
     build_tracks,
     candidate_pairs,
     derive_voxel_size,
-    preprocess,
+    preprocess_all,
 )
 from mvreg.pairwise.consistency import inconsistent_pairs
 from mvreg.pairwise.search import connect_unconnected
@@ -148,10 +148,9 @@ def register(
 
     voxel = derive_voxel_size(scans, cfg.preprocess)
     prog.stage("preprocess", len(scans))
-    pre = []
-    for s in scans:
-        pre.append(preprocess(s, voxel, cfg.preprocess))
-        prog.advance()
+    pre = preprocess_all(
+        scans, voxel, cfg.preprocess, cfg.align.num_workers, progress=lambda _p: prog.advance()
+    )
     timed("preprocess")
 
     pairs = candidate_pairs(pre, cfg.pairs)

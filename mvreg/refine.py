@@ -205,19 +205,19 @@ def overlapping_pairs(
     return out
 
 
-def _dense_levels(scans, pre, voxel: float):
+def _dense_levels(scans, pre, voxel: float, workers: int = 2):
     """Raw scans resampled at ``voxel``: (points, normals, KD-trees) per scan."""
     from scipy.spatial import cKDTree
 
     from mvreg.pairwise import resample
 
-    pts, nrm, trees = [], [], []
-    for scan, p in zip(scans, pre, strict=True):
-        q, n = resample(scan, p, voxel)
-        pts.append(q)
-        nrm.append(n)
-        trees.append(cKDTree(q))
-    return pts, nrm, trees
+    def level(k):
+        q, n = resample(scans[k], pre[k], voxel)
+        return q, n, cKDTree(q)
+
+    with single_threaded_blas(), ThreadPoolExecutor(max(1, workers)) as pool:
+        out = list(pool.map(level, range(len(scans))))
+    return [o[0] for o in out], [o[1] for o in out], [o[2] for o in out]
 
 
 def _pair_icp(pts_i, nrm_i, tree_i, pts_j, nrm_j, T_i_j, max_dist, min_cos, max_source=3000):
@@ -304,7 +304,9 @@ def refine_rounds(
         dist_v = cfg.refine.distance_voxels[min(k, len(cfg.refine.distance_voxels) - 1)]
         dense = k == rounds - 1 and scans is not None and cfg.refine.dense_voxel_ratio is not None
         if dense:
-            points, normals, trees = _dense_levels(scans, pre, cfg.refine.dense_voxel_ratio * voxel)
+            points, normals, trees = _dense_levels(
+                scans, pre, cfg.refine.dense_voxel_ratio * voxel, cfg.align.num_workers
+            )
         else:
             points = [p.fine_points for p in pre]
             normals = [p.fine_normals for p in pre]

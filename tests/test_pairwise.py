@@ -323,6 +323,15 @@ def test_mutual_correspondences():
     b = np.array([[0.001, 0, 0]])
     idx_i, idx_j = mutual_correspondences(a, b, np.eye(4), 0.01)
     assert idx_i.tolist() == [0] and idx_j.tolist() == [0]
+    # Partly overlapping noisy sets: the same pairs as a brute-force mutual search.
+    a = rng.uniform(size=(400, 3))
+    b = np.vstack([a[:200] + rng.normal(scale=0.01, size=(200, 3)), rng.uniform(size=(150, 3))])
+    d = np.linalg.norm(a[:, None] - b[None], axis=2)
+    ab, ba = d.argmin(axis=1), d.argmin(axis=0)
+    want = [(ba[k], k) for k in range(len(b)) if ab[ba[k]] == k and d[ba[k], k] <= 0.02]
+    idx_i, idx_j = mutual_correspondences(a, b, np.eye(4), 0.02)
+    assert sorted(zip(idx_i.tolist(), idx_j.tolist(), strict=True)) == sorted(want)
+    assert len(want) > 100
 
 
 # ----------------------------------------------------------------------------- tracks

@@ -14,6 +14,7 @@ from mvreg.pairwise.preprocess import (
     PreprocessedScan,
     derive_voxel_size,
     preprocess,
+    preprocess_all,
     resample,
 )
 from mvreg.pairwise.tracks import (
@@ -38,6 +39,7 @@ __all__ = [
     "candidate_pairs",
     "derive_voxel_size",
     "mutual_correspondences",
+    "preprocess_all",
     "pair_correspondences",
     "preprocess",
     "resample",

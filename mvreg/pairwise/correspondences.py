@@ -51,12 +51,15 @@ def mutual_correspondences(
     tree_j = tree_j if tree_j is not None else cKDTree(points_j)
     # Query each tree in its own frame so both trees can be built once and reused.
     d_ji, nn_ji = tree_i.query(transform_points(T_i_j, points_j), distance_upper_bound=max_dist)
-    d_ij, nn_ij = tree_j.query(
-        transform_points(invert_transform(T_i_j), points_i), distance_upper_bound=max_dist
-    )
     idx_j = np.flatnonzero(np.isfinite(d_ji))
     idx_i = nn_ji[idx_j]
-    mutual = np.isfinite(d_ij[idx_i]) & (nn_ij[idx_i] == idx_j)
+    # The way back is needed only from the points of i that some point of j chose.
+    hit = np.unique(idx_i)
+    d_back, nn_back = tree_j.query(
+        transform_points(invert_transform(T_i_j), points_i[hit]), distance_upper_bound=max_dist
+    )
+    back = np.searchsorted(hit, idx_i)
+    mutual = np.isfinite(d_back[back]) & (nn_back[back] == idx_j)
     idx_i, idx_j = idx_i[mutual], idx_j[mutual]
     if min_normal_cos is not None and normals_i is not None and normals_j is not None:
         rotated = normals_j[idx_j] @ T_i_j[:3, :3].T

@@ -22,12 +22,13 @@ guess suffice); the median over scans, and
 never less than ``min_voxel_spacings`` times the median point spacing. Nothing assumes
 units: a scan in millimetres gets a voxel 1000 times that of the same scan in metres.
 
-Normal orientation: PCA normals are made consistent within the scan by propagation along
-a minimum spanning tree (Open3D ``orient_normals_consistent_tangent_plane``). Propagation
-breaks on thin parts (a bunny's ears, a teapot's handle) and flips whole patches (38% of
-one synthetic bunny view), so a scan that is a single view (:func:`single_view_axis`: a
-height field along the axis its unoriented normals best avoid being perpendicular to) has
-each normal's sign set by that axis instead. Then one sign per scan is chosen from the
+Normal orientation: a scan that is a single view (:func:`single_view_axis`: a height
+field along the axis its unoriented PCA normals best avoid being perpendicular to) has
+each normal's sign set by that axis. Other scans (merged clouds, all-round scans) are made
+consistent by propagation along a minimum spanning tree (Open3D
+``orient_normals_consistent_tangent_plane``), which breaks on thin parts (a bunny's ears, a
+teapot's handle) and flipped whole patches of single views (38% of one synthetic bunny
+view) before the axis replaced it there. Then one sign per scan is chosen from the
 first cue the data gives: the normals stored in the file, else a sensor origin stored in
 the file, else "outward" -- a partial scan of an object's exterior is convex on balance,
 so outward normals have sum_p n_p . (p - centroid) > 0. Outward is also towards the
@@ -44,6 +45,8 @@ approximation) and pairwise alignment can check free-space consistency (see
 
 from __future__ import annotations
 
+from collections.abc import Callable, Sequence
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
 from typing import TYPE_CHECKING
 
@@ -273,6 +276,27 @@ def preprocess(
         return _preprocess(scan, float(voxel_size), cfg)
 
 
+def preprocess_all(
+    scans: Sequence[Scan],
+    voxel_size: float,
+    cfg: PreprocessConfig | None = None,
+    workers: int = 2,
+    progress: Callable[[PreprocessedScan], None] | None = None,
+) -> list[PreprocessedScan]:
+    """:func:`preprocess` of every scan on ``workers`` threads; the same result as one by
+    one, in the order of ``scans``. ``progress`` is called as each scan is done."""
+    cfg = cfg or PreprocessConfig()
+    if not voxel_size > 0:
+        raise ConfigError(f"voxel_size must be > 0, got {voxel_size}")
+    out = []
+    with single_threaded_blas(), ThreadPoolExecutor(max(1, workers)) as pool:
+        for p in pool.map(lambda s: _preprocess(s, float(voxel_size), cfg), scans):
+            out.append(p)
+            if progress is not None:
+                progress(p)
+    return out
+
+
 def _preprocess(scan: Scan, v: float, cfg: PreprocessConfig) -> PreprocessedScan:
     import open3d as o3d
 
@@ -291,14 +315,15 @@ def _preprocess(scan: Scan, v: float, cfg: PreprocessConfig) -> PreprocessedScan
     file_normals = np.asarray(coarse.normals).copy() if scan.normals is not None else None
     coarse.normals = o3d.utility.Vector3dVector()
     _estimate_normals(coarse, cfg.normal_radius_voxels * v, cfg.normal_max_neighbours)
-    k = min(cfg.orient_neighbours, len(pts) - 1)
-    try:
-        coarse.orient_normals_consistent_tangent_plane(k)
-    except RuntimeError:
-        pass  # degenerate neighbourhood graph: keep PCA signs, the global sign still applies
+    axis = single_view_axis(pts, np.asarray(coarse.normals), v, cfg.max_view_occlusion)
+    if axis is None:  # not one view: signs from a spanning tree over the neighbourhoods
+        k = min(cfg.orient_neighbours, len(pts) - 1)
+        try:
+            coarse.orient_normals_consistent_tangent_plane(k)
+        except RuntimeError:
+            pass  # degenerate neighbourhood graph: keep PCA signs, the global sign applies
     normals = np.asarray(coarse.normals).copy()
-    axis = single_view_axis(pts, normals, v, cfg.max_view_occlusion)
-    if axis is not None:  # one sign per normal from the view axis, not the spanning tree
+    if axis is not None:  # one sign per normal from the view axis (needs no spanning tree)
         normals *= np.where(normals @ axis < 0, -1.0, 1.0)[:, None]
     if file_normals is not None:
         vote, orientation = np.sum(np.einsum("ij,ij->i", normals, file_normals)), "file normals"

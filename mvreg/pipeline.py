@@ -223,7 +223,7 @@ def _cycle_check(pre, results, cfg) -> tuple[np.ndarray, list[dict]]:
     w0 = np.ones(len(accepted))
     if cfg.robust.cycle_check_voxels is None:
         return w0, []
-    out = inconsistent_pairs(pre, results, cfg.robust.cycle_check_voxels)
+    out = inconsistent_pairs(pre, results, cfg.robust.cycle_check_voxels, align_cfg=cfg.align)
     position = {k: n for n, k in enumerate(accepted)}
     for k, _ in out:
         w0[position[k]] = 0.0

@@ -507,3 +507,29 @@ def test_bunny_all_pairs_and_tracks(bunny):
     world = np.einsum("kij,kj->ki", T[:, :3, :3], tracks.coords) + T[:, :3, 3]
     a, b = tracks.link_obs.T
     assert np.median(np.linalg.norm(world[a] - world[b], axis=1)) < 1e-3
+
+
+def test_cycle_check_sets_aside_the_pair_the_geometry_contradicts(synthetic_pre):
+    """A triangle with one wrong pair: counting cycles ties all three pairs, and the
+    count's tie-break (smaller overlap first) sets aside a right one. Tested against the
+    pose the cycle implies, the wrong pair loses on the scans' own points."""
+    from mvreg.pairwise.consistency import inconsistent_pairs
+
+    pre, T_world = synthetic_pre
+    results = []
+    for i, j, overlap in ((0, 1, 0.9), (1, 2, 0.5), (0, 2, 0.4)):
+        T = invert_transform(T_world[i]) @ T_world[j]
+        if (i, j) == (0, 1):  # 12 degrees about the overlap's centre, as a slide would be
+            c = transform_points(T, pre[j].points).mean(axis=0)
+            R = Rotation.from_rotvec(np.radians(12.0) * np.array([0.6, 0.0, 0.8])).as_matrix()
+            T = make_transform(R, c - R @ c) @ T
+        results.append(
+            PairResult(i, j, T, overlap_ratio=overlap, inlier_rmse=0.0,
+                       num_correspondences=500, fitness=0.5, accepted=True, reason="")
+        )  # fmt: skip
+    by_count = inconsistent_pairs(pre, results, max_voxels=2.0)
+    assert [(results[k].i, results[k].j) for k, _ in by_count] == [(0, 2)]  # a right pair
+    out = inconsistent_pairs(pre, results, max_voxels=2.0, align_cfg=AlignConfig())
+    assert [(results[k].i, results[k].j) for k, _ in out] == [(0, 1)]
+    info = out[0][1]
+    assert info["best_cycle_support"] > max(100.0, info["own_support"])

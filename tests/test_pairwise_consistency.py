@@ -109,3 +109,21 @@ def test_support_prefers_the_hypothesis_outside_free_space():
     assert _support(right, cfg) > 2 * _support(flip, cfg)
     no_view = {"num_correspondences": 100, "free_space_violation": float("nan")}
     assert _support(no_view, cfg) == 100
+
+
+def test_robust_rounds_never_cut_a_scan_off():
+    """Zeroing pairs by residual keeps every scan connected: of the zeroed pairs, the ones
+    that alone join two parts come back at the floor weight, lowest residual first."""
+    from mvreg.refine import keep_connected
+
+    # 0-1-2 triangle, 2-3 the only link of scan 3, 3-4 and 2-4 two links of scan 4.
+    pairs = np.array([(0, 1), (1, 2), (0, 2), (2, 3), (3, 4), (2, 4)])
+    before = np.ones(6)
+    residual = np.array([1.0, 1.0, 9.0, 8.0, 7.0, 6.0])
+    after = np.array([1.0, 1.0, 0.0, 0.0, 0.0, 0.0])  # 0-2 and every link of 3 and 4 zeroed
+    out = keep_connected(pairs, before, after, residual, 0.05)
+    # 0-2 stays zero (0 and 2 are joined by 0-1-2); 2-4 (lower residual) brings 4 back,
+    # then 3-4 (lower than 2-3) brings 3 back.
+    assert out.tolist() == [1.0, 1.0, 0.0, 0.0, 0.05, 0.05]
+    # Pairs zero before stay zero: a scan cut off earlier is not for this rule to restore.
+    assert keep_connected(pairs, after, after, residual, 0.05).tolist() == after.tolist()

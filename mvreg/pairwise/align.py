@@ -542,7 +542,19 @@ def _violations(grid, points, normals, tolerance, min_cos, min_count) -> float:
     seen = keys[pos] == k
     slope = np.sqrt(np.clip(1.0 - cos[facing] ** 2, 0.0, 1.0)) / np.maximum(cos[facing], 1e-3)
     ahead = p @ d > front[pos] + tolerance + cell * slope
-    return float(np.count_nonzero(seen & ahead) / max(np.count_nonzero(seen), min_count))
+    bad = _clustered(p[seen & ahead], cell)
+    return float(bad / max(np.count_nonzero(seen), min_count))
+
+
+def _clustered(points: np.ndarray, radius: float, min_points: int = 3) -> int:
+    """How many of ``points`` have at least ``min_points`` of them (itself included)
+    within ``radius``: a surface put in the wrong place violates in patches, stray
+    outlier points one by one (fandisk, 10% outliers: a right pair at 0.008 of its points
+    in free space, 0.92 overlap, all of them strays)."""
+    if len(points) < min_points:
+        return 0
+    near = cKDTree(points).query_ball_point(points, radius, return_length=True)
+    return int(np.count_nonzero(near >= min_points))
 
 
 def free_space_violation(
@@ -588,7 +600,8 @@ def _unseen(lateral, points, normals, radius, min_cos, min_count) -> float:
     F, d, tree = lateral
     facing = normals @ d >= min_cos
     dist, _ = tree.query(points[facing] @ F.T, distance_upper_bound=radius)
-    return float(np.count_nonzero(np.isinf(dist)) / max(np.count_nonzero(facing), min_count))
+    bad = _clustered(points[facing][np.isinf(dist)], radius / 2.0)
+    return float(bad / max(np.count_nonzero(facing), min_count))
 
 
 def unseen_violation(
@@ -792,6 +805,11 @@ def _align_pair(pre_i, pre_j, cfg, seed, i, j, feature_basis, ransac, start) -> 
         T, reason, scores, coarse = max(passed, key=lambda t: _support(t[2], cfg), default=tried[0])
         stats["coarse"] = coarse
     stats["seconds_icp"] = time.perf_counter() - start - stats["seconds_ransac"]
+    return pair_result(pre_i, pre_j, i, j, T, reason, scores, stats, start)
+
+
+def pair_result(pre_i, pre_j, i, j, T, reason: str, scores: dict | None, stats, start):
+    """The PairResult of a decided pair (``scores`` None: nothing was found to score)."""
     if scores is None:
         scores = {"fitness": 0.0, "overlap_ratio": 0.0, "inlier_rmse": float("inf")}
         scores |= {"residual_ratio": float("inf"), "num_correspondences": 0}

@@ -42,6 +42,7 @@ from mvreg.pairwise.align import (
     _support,
     _verify,
     icp_point_to_plane,
+    pair_result,
     score_alignment,
 )
 from mvreg.pairwise.candidates import global_descriptor
@@ -113,27 +114,8 @@ def search_pair(
     if tried:
         T, reason, scores, _ = max(passed, key=lambda t: _support(t[2], cfg), default=tried[0])
     else:
-        T, reason = np.eye(4), "rotation search found no alignment"
-        scores = {"fitness": 0.0, "overlap_ratio": 0.0, "inlier_rmse": float("inf")}
-        scores |= {"residual_ratio": float("inf"), "num_correspondences": 0}
-        scores |= {"free_space_violation": float("nan"), "unseen_violation": float("nan")}
-    return PairResult(
-        i=i,
-        j=j,
-        T_i_j=T,
-        overlap_ratio=scores["overlap_ratio"],
-        inlier_rmse=scores["inlier_rmse"],
-        num_correspondences=scores["num_correspondences"],
-        fitness=scores["fitness"],
-        accepted=not reason,
-        reason=reason,
-        residual_ratio=scores["residual_ratio"],
-        free_space_violation=scores["free_space_violation"],
-        unseen_violation=scores["unseen_violation"],
-        seconds=time.perf_counter() - start,
-        names=(pre_i.name, pre_j.name),
-        stats=stats,
-    )
+        T, reason, scores = np.eye(4), "rotation search found no alignment", None
+    return pair_result(pre_i, pre_j, i, j, T, reason, scores, stats, start)
 
 
 def _components(m: int, results: Sequence[PairResult]) -> np.ndarray:

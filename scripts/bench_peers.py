@@ -108,13 +108,14 @@ def bunny_truth(folder: Path) -> dict[str, np.ndarray]:
 
 @contextlib.contextmanager
 def reuse_stages(scans, pre, results):
-    """Run ``register`` with the loading, preprocessing and pairwise stages of an earlier
+    """Run ``register`` with the loading, preprocessing and pairwise stages (search
+    included: ``results`` as the pair hook saw them) of an earlier
     run (identical inputs to the global stage) by substituting the cached results for the
     functions ``mvreg.pipeline`` calls (its loader is ``load_source``, ``_load`` before)."""
     import mvreg.pipeline as pl
 
     loader = next(n for n in ("load_source", "_load") if hasattr(pl, n))
-    names = (loader, "preprocess", "align_pairs", "_evaluate")
+    names = (loader, "preprocess_all", "align_pairs", "connect_unconnected", "_evaluate")
     names += ("solve_tracks", "robust_rounds", "refine_rounds")
     saved = {n: getattr(pl, n) for n in names}
     by_name = {p.name: p for p in pre}
@@ -128,8 +129,9 @@ def reuse_stages(scans, pre, results):
         return lambda *a, callback=None, **k: f(*a, **k)
 
     setattr(pl, loader, load)
-    pl.preprocess = lambda scan, voxel, cfg=None: by_name[scan.name]
+    pl.preprocess_all = lambda scans_, voxel, *a, **k: [by_name[s.name] for s in scans_]
     pl.align_pairs = lambda *a, **k: copy.deepcopy(results)
+    pl.connect_unconnected = lambda pre_, results_, *a, **k: results_  # searched already
     pl._evaluate = lambda reg, pre, truth: None  # the benchmark evaluates every method itself
     for n in ("solve_tracks", "robust_rounds", "refine_rounds"):
         setattr(pl, n, no_callback(saved[n]))

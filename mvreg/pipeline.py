@@ -32,6 +32,7 @@ from mvreg.pairwise.search import connect_unconnected
 from mvreg.refine import (
     GlobalSolution,
     pair_disagreements,
+    prepare_dense_levels,
     refine_rounds,
     robust_rounds,
     solve_tracks,
@@ -168,6 +169,7 @@ def register(
         step[0] += 1
         rec.log_solver_iteration(step[0], r.objective, r.primal_residual, r.dual_residual, r.rho)
 
+    dense_levels = prepare_dense_levels(scans, pre, cfg)  # in the background meanwhile
     w0, robust_log = _cycle_check(pre, results, cfg)
     tracks = build_tracks(pre, results, cfg.tracks, pair_weights=w0)
     sol: GlobalSolution | None = None
@@ -183,7 +185,9 @@ def register(
         robust_log += log
         timed("robust")
         prog.stage("refinement", cfg.refine.rounds)
-        sol, refine_log = refine_rounds(pre, sol, cfg, callback=on_iteration, scans=scans)
+        sol, refine_log = refine_rounds(
+            pre, sol, cfg, callback=on_iteration, scans=scans, dense_levels=dense_levels
+        )
         weights = _final_check(pre, results, tracks, weights, sol, voxel, cfg, robust_log)
         timed("refine")
     prog.done()
@@ -349,7 +353,7 @@ def _evaluate(reg: Registration, pre, truth) -> None:
     world = [transform_points(T, reg.scans[idx[n]].points) for n, T in reg.T_world_scan.items()]
     spacing = float(np.median([p.noise for p in pre])) if pre else 0.0
     thresh = max(2.0 * pre[0].fine_voxel_size, 10 * spacing)
-    reg.overlap = overlap_residual(world, thresh, seed=reg.config.seed)
+    reg.overlap = overlap_residual(world, thresh, max_points=2000, seed=reg.config.seed)
     if truth:
         common = [n for n in reg.T_world_scan if n in truth]
         if len(common) >= 2:
@@ -368,5 +372,5 @@ def _evaluate(reg: Registration, pre, truth) -> None:
             }
             tw = [transform_points(np.asarray(truth[n]), reg.scans[idx[n]].points) for n in common]
             reg.truth_errors["truth_overlap_residual"] = overlap_residual(
-                tw, thresh, seed=reg.config.seed
+                tw, thresh, max_points=2000, seed=reg.config.seed
             )

@@ -242,6 +242,19 @@ def overlapping_pairs(
     return out
 
 
+def prepare_dense_levels(scans, pre, cfg: RegisterConfig):
+    """Start resampling the raw scans for the last refinement round in the background
+    (it needs no poses, so it can run while the global solve does); a Future to pass to
+    :func:`refine_rounds` as ``dense_levels``, or None when no round is dense."""
+    if not cfg.refine.rounds or cfg.refine.dense_voxel_ratio is None or not pre:
+        return None
+    voxel = cfg.refine.dense_voxel_ratio * pre[0].voxel_size
+    pool = ThreadPoolExecutor(1)
+    future = pool.submit(_dense_levels, scans, pre, voxel, cfg.align.num_workers)
+    pool.shutdown(wait=False)  # the task runs on; the pool takes no more
+    return future
+
+
 def _dense_levels(scans, pre, voxel: float, workers: int = 2):
     """Raw scans resampled at ``voxel``: (points, normals, KD-trees) per scan."""
     from scipy.spatial import cKDTree
@@ -252,7 +265,8 @@ def _dense_levels(scans, pre, voxel: float, workers: int = 2):
         q, n = resample(scans[k], pre[k], voxel)
         return q, n, cKDTree(q)
 
-    with single_threaded_blas(), ThreadPoolExecutor(max(1, workers)) as pool:
+    # No BLAS limit here: this may run in the background of a solve that sets its own.
+    with ThreadPoolExecutor(max(1, workers)) as pool:
         out = list(pool.map(level, range(len(scans))))
     return [o[0] for o in out], [o[1] for o in out], [o[2] for o in out]
 
@@ -315,6 +329,7 @@ def refine_rounds(
     scans: Sequence | None = None,
     pairs: Sequence[tuple[int, int]] | None = None,
     tracks_cfg=None,
+    dense_levels=None,
 ) -> tuple[GlobalSolution, list[dict]]:
     """Multiview ICP: correspondences of all overlapping scans under the global poses,
     tracks, global re-solve warm-started; ``cfg.refine.rounds`` times, shrinking distance.
@@ -323,7 +338,8 @@ def refine_rounds(
     scans resampled at that fraction of the feature voxel instead of the fine points.
     ``pairs`` restricts the rounds to those scan pairs (default: every registered pair
     whose world bounding boxes overlap); ``tracks_cfg`` overrides ``cfg.tracks`` (normal
-    agreement, per-pair thinning, conflict splitting).
+    agreement, per-pair thinning, conflict splitting). ``dense_levels``: the Future of
+    :func:`prepare_dense_levels` for the same scans (else resampled here).
 
     With ``cfg.refine.correspondences == "pairwise-icp"`` (default) each pair is first
     refined by point-to-plane ICP from its relative pose under the global poses
@@ -340,7 +356,9 @@ def refine_rounds(
     for k in range(rounds):
         dist_v = cfg.refine.distance_voxels[min(k, len(cfg.refine.distance_voxels) - 1)]
         dense = k == rounds - 1 and scans is not None and cfg.refine.dense_voxel_ratio is not None
-        if dense:
+        if dense and dense_levels is not None:
+            points, normals, trees = dense_levels.result()
+        elif dense:
             points, normals, trees = _dense_levels(
                 scans, pre, cfg.refine.dense_voxel_ratio * voxel, cfg.align.num_workers
             )

@@ -44,16 +44,19 @@ def bunny_truth(folder: Path) -> dict[str, np.ndarray]:
     return truth
 
 
-def run_bunny() -> dict:
+def run_bunny(repeats: int = 1) -> dict:
     from mvreg.geometry import transform_points
     from mvreg.metrics import overlap_residual
     from mvreg.pipeline import register
 
     folder = SHARED / "stanford_bunny_scans"
     truth = bunny_truth(folder)
-    t0 = time.perf_counter()
-    reg = register(folder, truth=truth)
-    wall = time.perf_counter() - t0
+    walls = []
+    for _ in range(repeats):  # the same poses every time; the time varies on a shared VM
+        t0 = time.perf_counter()
+        reg = register(folder, truth=truth)
+        walls.append(time.perf_counter() - t0)
+    wall = float(np.median(walls))
     e = reg.truth_errors
     by_name = {s.name: s.points for s in reg.scans}
     names = [n for n in reg.T_world_scan]
@@ -74,6 +77,7 @@ def run_bunny() -> dict:
         ),
         "residual": res,
         "wall": wall,
+        "walls": walls,
         "timings": reg.timings,
         "certified": reg.solve.certificate.certified,
     }
@@ -160,6 +164,9 @@ def main() -> None:
     ap.add_argument("--seeds", type=int, default=5)
     ap.add_argument("--out", type=Path, default=ROOT / "docs" / "benchmarks")
     ap.add_argument("--bunny-only", action="store_true", help="only the bunny: register_bunny.md")
+    ap.add_argument(
+        "--bunny-repeats", type=int, default=3, help="bunny runs; the median time is reported"
+    )
     a = ap.parse_args()
     os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
     meshes = sorted((SHARED / "meshes").glob("*.obj"))
@@ -169,7 +176,7 @@ def main() -> None:
     if a.quick:
         meshes = meshes[:1]
     print("bunny ...", file=sys.stderr)
-    bunny = run_bunny()
+    bunny = run_bunny(a.bunny_repeats)
     if a.bunny_only:
         write_report(a, bunny, [])
         return
@@ -218,13 +225,14 @@ def write_report(a, bunny, rows) -> None:
         f"| overlap residual, mean NN distance (mm), each alignment's own overlapping points, mvreg / bun.conf | {1e3 * r['mvreg']['mean']:.4f} / {1e3 * r['bun.conf']['mean']:.4f} | | {ok(r['mvreg']['mean'] <= r['bun.conf']['mean'])} |",
         f"| overlap residual, median (mm), mvreg / bun.conf | {1e3 * r['mvreg']['median']:.4f} / {1e3 * r['bun.conf']['median']:.4f} | | |",
         f"| overlapping fraction (within 0.5 mm), mvreg / bun.conf | {r['mvreg']['overlap_fraction']:.3f} / {r['bun.conf']['overlap_fraction']:.3f} | | |",
-        f"| wall time (s) | {bunny['wall']:.2f} | <= 10 | {ok(bunny['wall'] <= 10)} |",
+        f"| wall time (s), median of {len(bunny['walls'])} runs ({', '.join(f'{w:.2f}' for w in bunny['walls'])}) | {bunny['wall']:.2f} | <= 10 | {ok(bunny['wall'] <= 10)} |",
         f"| certified global optimum (last solve) | {bunny['certified']} | | |",
         "",
         "Overlap residual: for each scan, up to 20,000 of its raw points matched to the nearest raw point of any other scan; "
         "points within 0.5 mm count as overlapping (the data README's definition); same code for both alignments.",
         "",
-        "Stage times (s): " + ", ".join(f"{k} {v:.2f}" for k, v in bunny["timings"].items()),
+        "Stage times (s), last run: "
+        + ", ".join(f"{k} {v:.2f}" for k, v in bunny["timings"].items()),
         "",
         "Per scan (rotation deg, translation mm): "
         + "; ".join(f"{n} {ro:.3f} / {t:.3f}" for n, ro, t in bunny["per_scan"]),

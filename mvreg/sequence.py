@@ -161,6 +161,14 @@ class SequenceConfig(BaseModel):
     correspondences_per_pair: int | None = Field(
         400, ge=4, description="tracks: thin each pair to this many (if tracks sets none)"
     )
+    min_normal_cos: float = Field(
+        0.7,
+        ge=-1,
+        le=1,
+        description="tracks: normals must agree (unless tracks.min_normal_cos is given); "
+        "LiDAR normals are noisier than a range scanner's, and the sequence benchmark "
+        "was measured at 0.7",
+    )
 
 
 @dataclass
@@ -403,11 +411,12 @@ def _resolve_config(
 
 
 def _tracks_config(cfg: RegisterConfig, seq: SequenceConfig) -> TracksConfig:
-    if cfg.tracks.max_correspondences_per_pair is not None:
-        return cfg.tracks
-    return cfg.tracks.model_copy(
-        update={"max_correspondences_per_pair": seq.correspondences_per_pair}
-    )
+    update = {}
+    if cfg.tracks.max_correspondences_per_pair is None:
+        update["max_correspondences_per_pair"] = seq.correspondences_per_pair
+    if "min_normal_cos" not in cfg.tracks.model_fields_set:
+        update["min_normal_cos"] = seq.min_normal_cos
+    return cfg.tracks.model_copy(update=update)
 
 
 # ---------------------------------------------------------------------------- load

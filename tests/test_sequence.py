@@ -207,3 +207,17 @@ def test_bad_input_and_settings(tmp_path):
         )
     with pytest.raises(ConfigError, match="sequence.gap_factor"):
         register_sequence(tmp_path, **{"sequence.gap_factor": 0.5})
+
+
+def test_sequence_tracks_keep_their_normal_agreement_unless_given():
+    """register's tracks default to 0.9; sequences keep 0.7 unless tracks.min_normal_cos
+    is given (LiDAR normals are noisier)."""
+    from mvreg.config import load_config
+    from mvreg.sequence import SequenceConfig, _tracks_config
+
+    cfg = load_config()
+    assert cfg.tracks.min_normal_cos == 0.9
+    assert _tracks_config(cfg, SequenceConfig()).min_normal_cos == 0.7
+    given = load_config(**{"tracks.min_normal_cos": 0.8})
+    assert _tracks_config(given, SequenceConfig()).min_normal_cos == 0.8
+    assert _tracks_config(cfg, SequenceConfig()).max_correspondences_per_pair == 400

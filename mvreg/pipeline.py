@@ -364,19 +364,18 @@ def _evaluate(reg: Registration, pre, truth) -> None:
         )
         pool.shutdown(wait=False)
     reg.overlap = overlap_residual(world, thresh, max_points=2000, seed=reg.config.seed)
-    if truth:
-        if len(common) >= 2:
-            est = np.stack([reg.T_world_scan[n] for n in common])
-            tru = np.stack([np.asarray(truth[n]) for n in common])
-            err = pose_errors(est, tru)
-            centroids = np.stack([reg.scans[idx[n]].points.mean(axis=0) for n in common])
-            at_centroid = pose_errors(est, tru, at=centroids).translation
-            reg.truth_errors = {
-                "scans": common,
-                "rotation_deg": err.rotation_deg.tolist(),
-                "translation": err.translation.tolist(),
-                **err.summary(),
-                "translation_at_centroid": at_centroid.tolist(),
-                "translation_at_centroid_max": float(at_centroid.max()),
-            }
-            reg.truth_errors["truth_overlap_residual"] = truth_residual.result()
+    if len(common) >= 2:
+        est = np.stack([reg.T_world_scan[n] for n in common])
+        tru = np.stack([np.asarray(truth[n]) for n in common])
+        err = pose_errors(est, tru)
+        centroids = np.stack([reg.scans[idx[n]].points.mean(axis=0) for n in common])
+        at_centroid = pose_errors(est, tru, at=centroids).translation
+        reg.truth_errors = {
+            "scans": common,
+            "rotation_deg": err.rotation_deg.tolist(),
+            "translation": err.translation.tolist(),
+            **err.summary(),
+            "translation_at_centroid": at_centroid.tolist(),
+            "translation_at_centroid_max": float(at_centroid.max()),
+        }
+        reg.truth_errors["truth_overlap_residual"] = truth_residual.result()

@@ -196,6 +196,12 @@ def main() -> None:
     write_report(a, bunny, rows)
 
 
+def _within(run: dict, translation_key: str) -> bool:
+    """Every scan registered and within 0.5 deg and 0.5% of the diagonal (by that key)."""
+    ok = run["rot_max"] <= 0.5 and run[translation_key] <= 0.5
+    return ok and run["registered"] == run["scans"]
+
+
 def write_report(a, bunny, rows) -> None:
     sys.path.insert(0, str(ROOT / "scripts"))
     from bench_solver import machine
@@ -258,10 +264,7 @@ def write_report(a, bunny, rows) -> None:
         rot = max(x["rot_max"] for x in g)
         tr = max(x["tr_max_pct"] for x in g)
         trc = max(x["trc_max_pct"] for x in g)
-        within, within_c = (
-            sum(x["rot_max"] <= 0.5 and x[k] <= 0.5 and x["registered"] == x["scans"] for x in g)
-            for k in ("tr_max_pct", "trc_max_pct")
-        )
+        within, within_c = (sum(_within(x, k) for x in g) for k in ("tr_max_pct", "trc_max_pct"))
         found = (
             "" if cond != "wrong pairs" else f"{sum(x['wrong_found'] for x in g)} / {2 * len(g)}"
         )
@@ -271,14 +274,7 @@ def write_report(a, bunny, rows) -> None:
             f"{np.mean([x['wall'] for x in g]):.1f} |"
         )
     if rows:
-        n_ok = sum(
-            x["rot_max"] <= 0.5 and x["tr_max_pct"] <= 0.5 and x["registered"] == x["scans"]
-            for x in rows
-        )
-        n_ok_c = sum(
-            x["rot_max"] <= 0.5 and x["trc_max_pct"] <= 0.5 and x["registered"] == x["scans"]
-            for x in rows
-        )
+        n_ok, n_ok_c = (sum(_within(x, k) for x in rows) for k in ("tr_max_pct", "trc_max_pct"))
         L += [
             "",
             f"Within target: {n_ok} of {len(rows)} runs (translation at the frame origin), "

@@ -762,12 +762,32 @@ def _verify(pre_i, pre_j, T, cfg) -> tuple[np.ndarray, str, dict, dict]:
     return T, _decide(scores, cfg), scores, coarse
 
 
+def _discount(share: float, limit: float) -> float:
+    """1 - share / limit, at least 0; 1 when the share is undefined (NaN)."""
+    return 1.0 if not np.isfinite(share) else max(0.0, 1.0 - share / limit)
+
+
 def _support(scores: dict, cfg: AlignConfig) -> float:
     """Rank of an accepted hypothesis: mutual correspondences, discounted by its share of
     points in the other view's free space (NaN: no discount)."""
     fs = scores["free_space_violation"]
-    discount = 1.0 if not np.isfinite(fs) else max(0.0, 1.0 - fs / cfg.max_free_space_violation)
-    return scores["num_correspondences"] * discount
+    return scores["num_correspondences"] * _discount(fs, cfg.max_free_space_violation)
+
+
+def geometric_support(scores: dict, cfg: AlignConfig) -> float:
+    """How well two scans' points support a pose: mutual correspondences, discounted by
+    the share of points in the other view's free space and where it saw nothing (each
+    relative to its limit; NaN: no discount); 0 when the pose fails the acceptance rule."""
+    if _decide(scores, cfg):
+        return 0.0
+    out = float(scores["num_correspondences"])
+    for key, limit in (
+        ("free_space_violation", cfg.max_free_space_violation),
+        ("unseen_violation", cfg.max_unseen_violation),
+    ):
+        if limit > 0:
+            out *= _discount(scores[key], limit)
+    return out
 
 
 def _align_pair(pre_i, pre_j, cfg, seed, i, j, feature_basis, ransac, start) -> PairResult:

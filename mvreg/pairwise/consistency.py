@@ -22,11 +22,10 @@ right one, with less overlap, was set aside, which flipped four scans. So with t
 geometry at hand (``align_cfg``), each contradicted pair is also tested against the
 poses its inconsistent cycles imply for it: a pair whose own pose is worse supported by
 the two scans' points than some cycle's pose (mutual correspondences, discounted by the
-free-space and unseen tests, :func:`geometric_support`), or not supported at all, is
-wrong on the evidence of both the cycle and the data, and the one with the largest
-margin is set aside first. Only
-when no contradicted pair is beaten that way does the count decide (ties: the smaller
-overlap first).
+free-space and unseen tests, :func:`~mvreg.pairwise.align.geometric_support`), or not
+supported at all, is wrong on the evidence of both the cycle and the data, and the one
+with the largest margin is set aside first. Only when no contradicted pair is beaten that
+way does the count decide (ties: the smaller overlap first).
 """
 
 from __future__ import annotations
@@ -36,25 +35,8 @@ from collections.abc import Sequence
 import numpy as np
 
 from mvreg.geometry import invert_transform, transform_points
-from mvreg.pairwise.align import AlignConfig, PairResult, _decide, score_alignment
+from mvreg.pairwise.align import AlignConfig, PairResult, geometric_support, score_alignment
 from mvreg.pairwise.preprocess import PreprocessedScan
-
-
-def geometric_support(scores: dict, cfg: AlignConfig) -> float:
-    """How well two scans' points support a pose: mutual correspondences, discounted by
-    the share of points in the other view's free space and where it saw nothing (each
-    relative to its limit; NaN: no discount); 0 when the pose fails the acceptance rule."""
-    if _decide(scores, cfg):
-        return 0.0
-    out = float(scores["num_correspondences"])
-    for key, limit in (
-        ("free_space_violation", cfg.max_free_space_violation),
-        ("unseen_violation", cfg.max_unseen_violation),
-    ):
-        share = scores[key]
-        if np.isfinite(share) and limit > 0:
-            out *= max(0.0, 1.0 - share / limit)
-    return out
 
 
 def inconsistent_pairs(

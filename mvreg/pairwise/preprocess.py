@@ -260,6 +260,11 @@ def _orient_like(normals: np.ndarray, points: np.ndarray, ref_points, ref_normal
     return normals * sign[:, None]
 
 
+def _check_voxel(voxel_size: float) -> None:
+    if not voxel_size > 0:
+        raise ConfigError(f"voxel_size must be > 0, got {voxel_size}")
+
+
 def preprocess(
     scan: Scan, voxel_size: float, cfg: PreprocessConfig | None = None
 ) -> PreprocessedScan:
@@ -271,8 +276,7 @@ def preprocess(
             every scan of a run, so that features are comparable).
     """
     cfg = cfg or PreprocessConfig()
-    if not voxel_size > 0:
-        raise ConfigError(f"voxel_size must be > 0, got {voxel_size}")
+    _check_voxel(voxel_size)
     with single_threaded_blas():
         return _preprocess(scan, float(voxel_size), cfg)
 
@@ -287,8 +291,7 @@ def preprocess_all(
     """:func:`preprocess` of every scan on ``workers`` threads; the same result as one by
     one, in the order of ``scans``. ``progress`` is called as each scan is done."""
     cfg = cfg or PreprocessConfig()
-    if not voxel_size > 0:
-        raise ConfigError(f"voxel_size must be > 0, got {voxel_size}")
+    _check_voxel(voxel_size)
     out = []
     with single_threaded_blas(), ThreadPoolExecutor(max(1, workers)) as pool:
         for p in pool.map(lambda s: _preprocess(s, float(voxel_size), cfg), scans):

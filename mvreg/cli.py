@@ -282,6 +282,18 @@ def _summary_table(reg) -> None:
     )
     if c is not None:
         t.add_row("certified optimum", "yes" if c.certified else "[red]no[/]")
+    j = getattr(reg, "joint_icp", None)
+    if j:
+        moved = (
+            f"moved the certified poses by at most {j['max_rotation_change_deg']:.3f} deg, "
+            f"{j['max_point_move_voxels']:.2f} voxels"
+        )
+        t.add_row(
+            "joint point-to-plane ICP",
+            f"{j['iterations']} iterations, {moved}"
+            if j["accepted"]
+            else f"[yellow]not kept[/] (would have {moved})",
+        )
     if reg.overlap and reg.overlap["median"] is not None:
         t.add_row(
             "overlap residual",

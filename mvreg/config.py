@@ -101,6 +101,27 @@ class RefineConfig(BaseModel):
         description="the last round uses the raw scans resampled at this fraction of the "
         "feature voxel (denser correspondences, less sampling bias); None: fine points",
     )
+    joint_icp_iterations: int = Field(
+        10,
+        ge=0,
+        description="after the rounds, at most this many Gauss-Newton iterations of joint "
+        "point-to-plane ICP over all poses (mvreg.joint_icp); 0: off",
+    )
+    joint_icp_distance_voxels: float = Field(
+        0.5, gt=0, description="joint ICP correspondence distance / feature voxel"
+    )
+    joint_icp_points_per_pair: int = Field(
+        4000, ge=100, description="joint ICP: source points per pair (evenly strided)"
+    )
+    joint_icp_tolerance_voxels: float = Field(
+        0.01, gt=0, description="joint ICP stops when no scan moves more than this"
+    )
+    joint_icp_max_move_voxels: float = Field(
+        1.0,
+        gt=0,
+        description="joint ICP results that move any point of a scan further than this "
+        "(feature voxels) from the certified poses are not kept",
+    )
 
 
 class OutputConfig(BaseModel):

@@ -19,6 +19,7 @@ from mvreg.config import RegisterConfig, load_config
 from mvreg.errors import InputError
 from mvreg.geometry import transform_points
 from mvreg.io.loaders import Scan, list_scan_files, load_scan
+from mvreg.joint_icp import joint_icp
 from mvreg.metrics import overlap_residual, pose_errors
 from mvreg.pairwise import (
     PairResult,
@@ -66,6 +67,7 @@ class Registration:
     timings: dict
     robust_log: list[dict] = field(default_factory=list)
     refine_log: list[dict] = field(default_factory=list)
+    joint_icp: dict | None = None  # the joint point-to-plane ICP after the rounds
     overlap: dict | None = None
     truth_errors: dict | None = None
     scans: list[Scan] = field(default_factory=list, repr=False)
@@ -101,6 +103,7 @@ class Registration:
             "certificate": None if s is None or s.certificate is None else s.certificate.to_dict(),
             "robust_rounds": self.robust_log,
             "refine_rounds": self.refine_log,
+            "joint_icp": self.joint_icp,
             "overlap_residual": self.overlap,
             "ground_truth_errors": self.truth_errors,
         }
@@ -172,10 +175,10 @@ def register(
 
     dense_levels = prepare_dense_levels(scans, pre, cfg)  # in the background meanwhile
     w0, robust_log = _cycle_check(pre, results, cfg)
-    tracks = build_tracks(pre, results, cfg.tracks, pair_weights=w0)
+    tracks = build_tracks(pre, results, cfg.tracks, pair_weights=w0, workers=cfg.align.num_workers)
     sol: GlobalSolution | None = None
     weights = np.zeros(len(tracks.pairs))
-    refine_log = []
+    refine_log, joint_log = [], None
     if tracks.problem is not None:
         sol = solve_tracks(tracks, cfg, callback=on_iteration)
         timed("tracks_and_solve")
@@ -189,6 +192,9 @@ def register(
         sol, refine_log = refine_rounds(
             pre, sol, cfg, callback=on_iteration, scans=scans, dense_levels=dense_levels
         )
+        if cfg.refine.rounds:
+            levels = dense_levels.result() if dense_levels is not None else None
+            sol, joint_log = joint_icp(pre, sol, cfg, levels=levels)
         weights = _final_check(pre, results, tracks, weights, sol, voxel, cfg, robust_log)
         timed("refine")
     prog.done()
@@ -208,6 +214,7 @@ def register(
         timings=timings,
         robust_log=robust_log,
         refine_log=refine_log,
+        joint_icp=joint_log,
         scans=scans,
         source=source_str,
     )

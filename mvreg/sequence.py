@@ -79,6 +79,7 @@ from mvreg.config import RegisterConfig, load_config
 from mvreg.errors import ConfigError, InputError
 from mvreg.geometry import invert_transform, rotation_angle_deg, transform_points
 from mvreg.io.loaders import Scan
+from mvreg.joint_icp import joint_icp
 from mvreg.metrics import pose_errors
 from mvreg.pairwise._threads import single_threaded_blas
 from mvreg.pairwise.align import (
@@ -322,6 +323,7 @@ def register_sequence(
         timings=timings,
         robust_log=glob.robust_log,
         refine_log=glob.refine_log,
+        joint_icp=glob.joint_icp,
         scans=scans,
         source=source_str,
         timestamps=dict(zip(names_all, times.tolist(), strict=True)),
@@ -347,6 +349,7 @@ class _GlobalStage:
     results: list[PairResult]
     robust_log: list[dict]
     refine_log: list[dict]
+    joint_icp: dict | None = None
 
 
 def _global_stage(pre, results, cfg: RegisterConfig, seq: SequenceConfig, prog, timed, callback):
@@ -380,6 +383,10 @@ def _global_stage(pre, results, cfg: RegisterConfig, seq: SequenceConfig, prog, 
         sol, out.refine_log = refine_rounds(
             pre, sol, cfg, callback=callback, pairs=graph, tracks_cfg=tcfg
         )
+    if cfg.refine.rounds:  # over the pairs the global stage kept
+        pairs_w = zip(out.tracks.pairs, out.weights, strict=True)
+        kept = [(int(i), int(j)) for (i, j), w in pairs_w if w > 0]
+        sol, out.joint_icp = joint_icp(pre, sol, cfg, pairs=kept, tracks_cfg=tcfg)
     timed("refine")
     out.solution = sol
     return out

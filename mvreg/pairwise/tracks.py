@@ -24,6 +24,7 @@ that link it.
 from __future__ import annotations
 
 from collections.abc import Sequence
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -160,20 +161,28 @@ def build_tracks(
     results: Sequence[PairResult],
     cfg: TracksConfig | None = None,
     pair_weights: Sequence[float] | None = None,
+    workers: int = 2,
 ) -> Tracks:
     """Correspondences of the accepted pairs among ``results`` -> :class:`Tracks`.
 
-    ``pair_weights`` (one per accepted result, default 1) weight the observations.
+    ``pair_weights`` (one per accepted result, default 1) weight the observations. The
+    pairs are matched on ``workers`` threads (KD-tree queries release the GIL).
     """
     cfg = cfg or TracksConfig()
     accepted = [r for r in results if r.accepted]
-    corr, distances = [], []
-    with single_threaded_blas():
-        for r in accepted:
-            idx_i, idx_j = pair_correspondences(pre[r.i], pre[r.j], r.T_i_j, cfg)
-            moved = transform_points(r.T_i_j, pre[r.j].fine_points[idx_j])
-            corr.append((idx_i, idx_j))
-            distances.append(np.linalg.norm(pre[r.i].fine_points[idx_i] - moved, axis=1))
+
+    def match(r):
+        idx_i, idx_j = pair_correspondences(pre[r.i], pre[r.j], r.T_i_j, cfg)
+        moved = transform_points(r.T_i_j, pre[r.j].fine_points[idx_j])
+        return (idx_i, idx_j), np.linalg.norm(pre[r.i].fine_points[idx_i] - moved, axis=1)
+
+    for r in accepted:  # build the KD-trees once, before the threads share them
+        pre[r.i].fine_tree()
+        pre[r.j].fine_tree()
+    with single_threaded_blas(), ThreadPoolExecutor(max(1, workers)) as pool:
+        matched = list(pool.map(match, accepted))
+    corr = [m[0] for m in matched]
+    distances = [m[1] for m in matched]
     pairs = np.array([(r.i, r.j) for r in accepted], dtype=np.int64).reshape(-1, 2)
     return tracks_from_correspondences(
         [p.fine_points for p in pre],

@@ -479,6 +479,11 @@ def demo(
             f"origins, max {e['translation_at_centroid_max'] / diag * 100:.4f}% at the scan "
             "centroids; "
             f"certified: {report['certificate']['certified']}"
+            + (
+                f" (then moved at most {j['max_rotation_change_deg']:.4f} deg by joint ICP)"
+                if (j := report.get("joint_icp")) and j["accepted"]
+                else ""
+            )
         )
         typer.echo(f"open the recording with:  rerun {result_dir / 'recording.rrd'}")
         raise typer.Exit(code)

@@ -118,6 +118,15 @@ def test_outputs_parse_back(bunny_run):
     assert len(report["pairs"]) == 45 and {"final_weight", "overlap_ratio"} <= set(
         report["pairs"][0]
     )
+    # The joint ICP ran after the certified solve, and both files say how far it moved.
+    j = report["joint_icp"]
+    assert (
+        j["accepted"] and 1 <= j["iterations"] <= report["config"]["refine"]["joint_icp_iterations"]
+    )
+    assert 0 < j["max_rotation_change_deg"] < 0.5 and j["max_point_move_voxels"] <= 1.0
+    assert j["residual_median_end"] <= j["residual_median_start"]
+    moved = json.loads((out / "poses.json").read_text())["moved_after_certificate"]
+    assert moved["max_rotation_deg"] == j["max_rotation_change_deg"]
     rec = RecordingFile(out / "recording.rrd")
     assert rec.has("world/scans/bun000.ply")
     assert sum(e.startswith("/raw/") for e in rec.entities) == 10

@@ -92,6 +92,17 @@ def write_ply(path: str | Path, points: np.ndarray, colors: np.ndarray | None = 
             f.write(rec.tobytes())
 
 
+def _moved_after_certificate(reg) -> dict | None:
+    j = getattr(reg, "joint_icp", None)
+    if not j or not j.get("accepted"):
+        return None
+    return {
+        "by": "joint point-to-plane ICP",
+        "max_rotation_deg": j["max_rotation_change_deg"],
+        "max_point_move": j["max_point_move"],
+    }
+
+
 def write_registration(reg, out: str | Path) -> dict[str, Path]:
     """Write every result file of ``reg`` into ``out`` (already prepared). Returns paths."""
     out = Path(out)
@@ -113,6 +124,9 @@ def write_registration(reg, out: str | Path) -> dict[str, Path]:
         world_frame=names[0] if names else None,
         unregistered=reg.unregistered,
         certificate=cert,
+        # The certificate is of the last global solve; the joint point-to-plane ICP after
+        # it moved the poses by this much (None: it did not run or was not kept).
+        moved_after_certificate=_moved_after_certificate(reg),
     )
     if poses:
         stamps = getattr(reg, "timestamps", None) or {}

@@ -74,6 +74,45 @@ def _pair_terms(pair, T, points, normals, trees, strides, max_dist, min_cos, cen
     return _Terms(i, j, b, a, n, np.einsum("ij,ij->i", b - a, n))
 
 
+def _gauss_newton_step(terms, pair_w, c, col, radius) -> np.ndarray:
+    """Solve the (sparse, block-structured) normal equations of the weighted residuals.
+
+    Unknowns per scan in ``col``: (w * radius, v), a turn w about the centre and a shift v;
+    a pair touches only its two scans' 6 x 6 blocks, so the system stays sparse for
+    thousands of scans.
+    """
+    import scipy.sparse as sp
+    from scipy.sparse.linalg import spsolve
+
+    n = 6 * len(col)
+    g = np.zeros(n)
+    blocks: dict[tuple[int, int], np.ndarray] = {}
+    for t in terms:
+        wp = pair_w.get((t.i, t.j), 0.0)
+        if wp == 0.0:
+            continue
+        wt = wp / (1.0 + (t.r / c) ** 2)  # Cauchy weights times the pair's weight
+        # d r / d (w_j * radius, v_j) and d r / d (w_i * radius, v_i)
+        jb = np.hstack([np.cross(t.b, t.n) / radius, t.n])
+        ja = -np.hstack([np.cross(t.a, t.n) / radius, t.n])
+        sides = [(col[s], jac) for s, jac in ((t.j, jb), (t.i, ja)) if s in col]
+        for o1, j1 in sides:
+            g[o1 : o1 + 6] += j1.T @ (wt * t.r)
+            for o2, j2 in sides:
+                blk = (j1 * wt[:, None]).T @ j2
+                blocks[(o1, o2)] = blocks[(o1, o2)] + blk if (o1, o2) in blocks else blk
+    if not blocks:
+        return np.zeros(n)
+    r6, c6 = np.meshgrid(np.arange(6), np.arange(6), indexing="ij")
+    rows = np.concatenate([o1 + r6.ravel() for o1, _ in blocks])
+    cols = np.concatenate([o2 + c6.ravel() for _, o2 in blocks])
+    vals = np.concatenate([b.ravel() for b in blocks.values()])
+    H = sp.csc_matrix((vals, (rows, cols)), shape=(n, n))
+    # A direction no pair constrains (a scan held only by a plane) gets a zero step.
+    damping = 1e-9 * float(H.diagonal().sum()) / n + 1e-300
+    return spsolve(H + damping * sp.identity(n, format="csc"), -g)
+
+
 def joint_icp(
     pre: Sequence[PreprocessedScan],
     sol,
@@ -151,27 +190,7 @@ def joint_icp(
                 log["residual_median_start"] = float(np.median(r_all))
             # Cauchy scale: 3 robust standard deviations of the residuals.
             c = max(3.0 * 1.4826 * float(np.median(r_all)), 1e-6 * voxel)
-            H = np.zeros((6 * len(col), 6 * len(col)))
-            g = np.zeros(6 * len(col))
-            for t in terms:
-                wp = pair_w.get((t.i, t.j), 0.0)
-                if wp == 0.0:
-                    continue
-                wt = wp / (1.0 + (t.r / c) ** 2)
-                # d r / d (w_j * radius, v_j) and d r / d (w_i * radius, v_i)
-                jb = np.hstack([np.cross(t.b, t.n) / radius, t.n])
-                ja = -np.hstack([np.cross(t.a, t.n) / radius, t.n])
-                for s1, j1 in ((t.j, jb), (t.i, ja)):
-                    if s1 not in col:
-                        continue
-                    o1 = col[s1]
-                    g[o1 : o1 + 6] += j1.T @ (wt * t.r)
-                    for s2, j2 in ((t.j, jb), (t.i, ja)):
-                        if s2 in col:
-                            o2 = col[s2]
-                            H[o1 : o1 + 6, o2 : o2 + 6] += (j1 * wt[:, None]).T @ j2
-            damping = 1e-9 * float(np.trace(H)) / max(len(g), 1) + 1e-300
-            step = np.linalg.solve(H + damping * np.eye(len(g)), -g)
+            step = _gauss_newton_step(terms, pair_w, c, col, radius)
             moved = 0.0
             for s, o in col.items():
                 w_rot, v = step[o : o + 3] / radius, step[o + 3 : o + 6]

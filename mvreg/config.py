@@ -80,6 +80,10 @@ class RefineConfig(BaseModel):
     (``correspondences="nearest"``). By default each pair is first refined by
     point-to-plane ICP, which does move along planes as far as the other faces require,
     and its correspondences are taken under that refined pose.
+
+    After the rounds, a joint point-to-plane ICP moves all poses together
+    (``joint_icp_*``, :mod:`mvreg.joint_icp`): each pair then constrains only the
+    directions its overlap does, which the rounds' point-to-point tracks cannot express.
     """
 
     model_config = ConfigDict(extra="forbid")

@@ -7,7 +7,8 @@ Same inputs, same machine, same run. Per dataset, every method gets the same raw
 * ``mvreg/<solver>`` -- the same pipeline with each other registered global solver
   (``solve.solver``), reusing the default run's loaded scans, preprocessing and pairwise
   results (so only the global stage differs); ``mvreg/no-refine`` -- defaults without the
-  multiview-ICP refinement rounds (global solve + robust re-weighting only);
+  multiview-ICP refinement rounds and the joint ICP (global solve + robust re-weighting
+  only);
 * ``open3d`` -- Open3D multiway registration as its documentation teaches it (the
   multiway-registration tutorial + the reconstruction system's ``register_fragments``):
   voxel down-sampling, normals (radius 2v, 30 nn), FPFH (radius 5v, 100 nn), RANSAC on
@@ -930,7 +931,7 @@ def write_report(a, bunny, synth, patches, wall, cmd, date=None, mach=None) -> N
         "*pairwise s* = preprocessing + pairwise alignment (for mvreg also the features; the "
         "mvreg solver variants, Open3D-fed and GTSAM reuse the default run's pairwise stage, so "
         "they show its time); *global s* = everything after it (mvreg: tracks, global solve, "
-        "robust re-weighting, multiview-ICP refinement; Open3D: `global_optimization`; GTSAM: "
+        "robust re-weighting, multiview-ICP refinement, joint point-to-plane ICP; Open3D: `global_optimization`; GTSAM: "
         "Shonan + translations + pose-graph LM; chains: 0). Loading the files and the evaluation "
         "are excluded for all methods.",
         "- *wrong* edges/links (notes column): relative pose more than 2 deg or 2 feature voxels "
@@ -956,10 +957,12 @@ def write_report(a, bunny, synth, patches, wall, cmd, date=None, mach=None) -> N
         "|---|---|---|",
         "| mvreg | `register` defaults: FPFH + RANSAC + point-to-plane ICP on every pair, acceptance "
         "test (residual vs scan noise, overlap, free space, cross-pair) | tracks, REG-ADMM + "
-        "certificate, robust re-weighting, 3 multiview-ICP refinement rounds |",
+        "certificate, robust re-weighting, 3 multiview-ICP refinement rounds, joint "
+        "point-to-plane ICP |",
         "| mvreg/spectral, gpm, balm, c-admm | mvreg's (same results reused) | as mvreg, with "
         "`solve.solver` set to that solver |",
-        "| mvreg/no-refine | mvreg's | as mvreg with `refine.rounds=0` |",
+        "| mvreg/no-refine | mvreg's | as mvreg with `refine.rounds=0` (no refinement rounds, no "
+        "joint ICP) |",
         "| open3d | Open3D as documented (multiway-registration tutorial + reconstruction "
         "system's `register_fragments`): FPFH + RANSAC, multiscale point-to-plane ICP, "
         "information matrices; consecutive scans = odometry edges, other pairs = loop "
@@ -1496,7 +1499,7 @@ def why(bunny, synth, patches) -> list[str]:
             "- **mvreg's global stage is slower than a pose-graph solve.** Mean over the scan "
             f"datasets: mvreg {glob_mean:.2f} s (tracks, REG-ADMM with its certificate, robust "
             "re-weighting, three multiview-ICP refinement rounds that recompute correspondences "
-            "between all overlapping scans and re-solve)"
+            "between all overlapping scans and re-solve, then the joint point-to-plane ICP)"
         )
         if nr:
             txt += f", {np.mean([r['global_s'] for r in nr]):.2f} s without the refinement rounds"

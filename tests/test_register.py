@@ -173,6 +173,24 @@ def test_near_symmetric_teapot_within_target(tmp_path):
     assert not reg.report()["bad_pairs"]
 
 
+def test_noise_free_cad_scans_register(tmp_path):
+    """Noise-free scans of a CAD part: the scans' noise estimate goes to zero there, and
+    before it had a floor every correct fandisk pair failed the residual test (0 of 12
+    registered)."""
+    from data_synth import synthesize_scans
+    from mvreg.pipeline import register
+
+    mesh = require_shared() / "meshes" / "fandisk.obj"
+    synth = synthesize_scans(
+        mesh, tmp_path / "fandisk", views=12, noise=0.0, seed=0, random_frames=True
+    )
+    reg = register(tmp_path / "fandisk", seed=0)
+    assert not reg.unregistered
+    e = reg.truth_errors
+    assert e["rotation_deg_max"] < 0.5, e
+    assert e["translation_max"] < 0.005 * synth.object_diagonal, e
+
+
 def test_same_seed_same_poses(tmp_path):
     scans = _few_bunny_scans(tmp_path)
     outs = []

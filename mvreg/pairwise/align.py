@@ -67,7 +67,9 @@ synthetic i.i.d. noise, 1.3-2.5 for the real bunny scans, whose alignment residu
 dominated by calibration rather than noise), so :func:`align_pairs` also compares pairs
 with each other: the reference is the median ``residual_ratio`` of the best-overlapping
 quarter of the accepted pairs (at least 3), which are almost always right, and a pair
-above ``relative_residual_factor`` times the reference is rejected as well.
+above ``relative_residual_factor`` times the reference is rejected as well, unless its
+median residual is below ``relative_residual_floor_fine_voxels`` fine voxels (noise-free
+scans, where the noise estimate sits at its floor).
 
 A pair whose feature-level ICP already fails by a wide margin (thresholds loosened
 ``coarse_gate_slack`` times) is rejected without fine ICP, which saves most of the time
@@ -145,6 +147,13 @@ class AlignConfig(BaseModel):
         gt=1,
         description="align_pairs: reject residual_ratio above this times the reference of "
         "the best-overlapping pairs (None: off)",
+    )
+    relative_residual_floor_fine_voxels: float = Field(
+        0.05,
+        ge=0,
+        description="align_pairs: a median residual below this many fine voxels passes the "
+        "relative test whatever the reference (noise-free scans: residuals of correct pairs "
+        "differ by the sampling alone, tiny but several times apart)",
     )
     coarse_gate_slack: float = Field(
         3.0, ge=1, description="feature-level ICP must pass the rule loosened this much"
@@ -835,6 +844,8 @@ def pair_result(pre_i, pre_j, i, j, T, reason: str, scores: dict | None, stats, 
         scores = {"fitness": 0.0, "overlap_ratio": 0.0, "inlier_rmse": float("inf")}
         scores |= {"residual_ratio": float("inf"), "num_correspondences": 0}
         scores |= {"free_space_violation": float("nan"), "unseen_violation": float("nan")}
+    median = scores.get("median_residual", float("inf"))
+    stats["median_residual_fine_voxels"] = median / pre_i.fine_voxel_size
     return PairResult(
         i=i,
         j=j,
@@ -920,9 +931,11 @@ def reject_relative_outliers(results: Sequence[PairResult], cfg: AlignConfig | N
     best = accepted[: max(3, len(accepted) // 4)]
     reference = float(np.median([r.residual_ratio for r in best]))
     limit = cfg.relative_residual_factor * reference
+    floor = cfg.relative_residual_floor_fine_voxels
     for r in results:
         r.stats["residual_reference"] = reference
-        if r.accepted and r.residual_ratio > limit:
+        tiny = r.stats.get("median_residual_fine_voxels", float("inf")) <= floor
+        if r.accepted and r.residual_ratio > limit and not tiny:
             r.accepted = False
             r.reason = (
                 f"residual {r.residual_ratio:.2f}x the scan noise, above "

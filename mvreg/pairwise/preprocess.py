@@ -76,6 +76,13 @@ class PreprocessConfig(BaseModel):
         3.0, gt=0, description="derived voxel >= this times the median point spacing"
     )
     fine_voxel_ratio: float = Field(0.5, gt=0, le=1, description="fine voxel / voxel")
+    noise_floor_fine_voxels: float = Field(
+        0.02,
+        ge=0,
+        description="the noise estimate is at least this many fine voxels: on noise-free "
+        "scans (synthetic, CAD-sampled) it goes to zero, while two samplings of a curved "
+        "surface still leave residuals, and every correct pair failed the residual test",
+    )
     normal_radius_voxels: float = Field(2.0, gt=0, description="normal PCA radius / voxel")
     normal_max_neighbours: int = Field(30, ge=3)
     orient_neighbours: int = Field(12, ge=3, description="k of the orientation spanning tree")
@@ -115,7 +122,8 @@ class PreprocessedScan:
         fine_points, fine_normals: (F, 3) float64 fine-level points and normals (oriented
             like the feature level).
         noise: median distance from a fine point's nearest neighbour to the point's tangent
-            plane: the residual a perfect alignment leaves (data units).
+            plane: the residual a perfect alignment leaves (data units); at least
+            ``noise_floor_fine_voxels`` fine voxels.
         orientation: which cue fixed the normals' sign ("file normals", "sensor origin",
             "outward").
         num_raw_points: points of the loaded scan.
@@ -356,7 +364,7 @@ def _preprocess(scan: Scan, v: float, cfg: PreprocessConfig) -> PreprocessedScan
         fine_voxel_size=fine_v,
         fine_points=fine_pts,
         fine_normals=fine_nrm,
-        noise=_plane_noise(fine_pts, fine_nrm),
+        noise=max(_plane_noise(fine_pts, fine_nrm), cfg.noise_floor_fine_voxels * fine_v),
         orientation=orientation,
         num_raw_points=scan.num_points,
         num_outliers_removed=int(np.count_nonzero(~keep)) if cfg.outlier_min_cell_share else 0,

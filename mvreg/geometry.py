@@ -65,6 +65,16 @@ def random_rotations(rng: np.random.Generator, n: int, d: int = 3) -> np.ndarray
     return q
 
 
+def rotation_from_vector(w: np.ndarray) -> np.ndarray:
+    """(3, 3) rotation of the rotation vector ``w`` (axis times angle), by Rodrigues."""
+    theta = float(np.linalg.norm(w))
+    k = np.array([[0.0, -w[2], w[1]], [w[2], 0.0, -w[0]], [-w[1], w[0], 0.0]])
+    if theta < 1e-12:
+        return np.eye(3) + k
+    k /= theta
+    return np.eye(3) + np.sin(theta) * k + (1 - np.cos(theta)) * (k @ k)
+
+
 def rotation_angle_deg(r: np.ndarray) -> np.ndarray:
     """Geodesic angle (degrees) of rotation(s) (..., d, d), d = 2 or 3."""
     d = r.shape[-1]

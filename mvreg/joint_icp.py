@@ -29,9 +29,15 @@ from dataclasses import dataclass, replace
 import numpy as np
 
 from mvreg.config import RegisterConfig
-from mvreg.geometry import invert_transform, rotation_angle_deg, transform_points
+from mvreg.geometry import (
+    invert_transform,
+    rotation_angle_deg,
+    rotation_from_vector,
+    transform_points,
+)
 from mvreg.pairwise import PreprocessedScan
 from mvreg.pairwise._threads import single_threaded_blas
+from mvreg.pairwise.align import nearest_with_normals
 from mvreg.refine import overlapping_pairs, robust_weights
 
 
@@ -47,30 +53,19 @@ class _Terms:
     r: np.ndarray  # (n,) signed point-to-plane residuals
 
 
-def _rotation(w: np.ndarray) -> np.ndarray:
-    """exp([w]x) by Rodrigues."""
-    theta = float(np.linalg.norm(w))
-    k = np.array([[0.0, -w[2], w[1]], [w[2], 0.0, -w[0]], [-w[1], w[0], 0.0]])
-    if theta < 1e-12:
-        return np.eye(3) + k
-    return np.eye(3) + np.sin(theta) / theta * k + (1 - np.cos(theta)) / theta**2 * (k @ k)
-
-
 def _pair_terms(pair, T, points, normals, trees, strides, max_dist, min_cos, centre):
     i, j = pair
     T_i_j = invert_transform(T[i]) @ T[j]
     src = points[j][:: strides[j]]
-    src_n = normals[j][:: strides[j]]
-    q = transform_points(T_i_j, src)
-    d, nn = trees[i].query(q, distance_upper_bound=max_dist)
-    ok = np.flatnonzero(np.isfinite(d))
-    n_loc = normals[i][nn[ok]]
-    agree = np.einsum("ij,ij->i", n_loc, src_n[ok] @ T_i_j[:3, :3].T) >= min_cos
-    ok, n_loc = ok[agree], n_loc[agree]
-    R_i, t_i = T[i][:3, :3], T[i][:3, 3]
-    b = q[ok] @ R_i.T + (t_i - centre)
-    a = points[i][nn[ok]] @ R_i.T + (t_i - centre)
-    n = n_loc @ R_i.T
+    nearest, _ = nearest_with_normals(
+        trees[i], points[i], normals[i], src, normals[j][:: strides[j]], T_i_j, max_dist, min_cos
+    )
+    ok = nearest >= 0
+    T_c = T[i].copy()
+    T_c[:3, 3] -= centre  # world frame shifted to the centre
+    b = transform_points(T_c @ T_i_j, src[ok])
+    a = transform_points(T_c, points[i][nearest[ok]])
+    n = normals[i][nearest[ok]] @ T[i][:3, :3].T
     return _Terms(i, j, b, a, n, np.einsum("ij,ij->i", b - a, n))
 
 
@@ -152,12 +147,9 @@ def joint_icp(
     strides = {
         s: max(1, int(np.ceil(len(points[s]) / rc.joint_icp_points_per_pair))) for s in scans
     }
-    centroids = {s: transform_points(T0[s], pre[s].points).mean(0) for s in scans}
-    centre = np.mean(list(centroids.values()), axis=0)
-    radius = max(
-        float(np.max(np.linalg.norm(transform_points(T0[s], pre[s].points) - centre, axis=1)))
-        for s in scans
-    )
+    world0 = {s: transform_points(T0[s], pre[s].points) for s in scans}
+    centre = np.mean([w.mean(0) for w in world0.values()], axis=0)
+    radius = max(float(np.max(np.linalg.norm(w - centre, axis=1))) for w in world0.values())
     col = {s: 6 * k for k, s in enumerate(scans[1:])}  # the first scan is held fixed
     T = dict(T0)
     pair_w: dict[tuple[int, int], float] = {}
@@ -195,7 +187,7 @@ def joint_icp(
             for s, o in col.items():
                 w_rot, v = step[o : o + 3] / radius, step[o + 3 : o + 6]
                 D = np.eye(4)
-                D[:3, :3] = _rotation(w_rot)
+                D[:3, :3] = rotation_from_vector(w_rot)
                 D[:3, 3] = v + centre - D[:3, :3] @ centre  # turn about the centre
                 T[s] = D @ T[s]
                 moved = max(moved, float(np.linalg.norm(w_rot)) * radius + float(np.linalg.norm(v)))
@@ -212,7 +204,7 @@ def joint_icp(
     for s in scans:
         D = T[s] @ invert_transform(T0[s])
         rot[s] = float(rotation_angle_deg(D[None, :3, :3])[0])
-        w = transform_points(T0[s], pre[s].points)
+        w = world0[s]
         disp[s] = float(np.max(np.linalg.norm(transform_points(D, w) - w, axis=1)))
     log["max_rotation_change_deg"] = max(rot.values())
     log["max_point_move"] = max(disp.values())

@@ -88,7 +88,7 @@ import numpy as np
 from pydantic import BaseModel, ConfigDict, Field
 from scipy.spatial import cKDTree
 
-from mvreg.geometry import invert_transform, transform_points
+from mvreg.geometry import invert_transform, rotation_from_vector, transform_points
 from mvreg.pairwise._threads import single_threaded_blas
 from mvreg.pairwise.preprocess import PreprocessedScan
 
@@ -244,16 +244,6 @@ def _same_pose(A: np.ndarray, B: np.ndarray, tol: float, centre: np.ndarray, rad
     return bool(angle * radius + np.linalg.norm(shift) < tol)
 
 
-def _small_rotation(w: np.ndarray) -> np.ndarray:
-    """Rotation matrix of the rotation vector ``w`` (Rodrigues)."""
-    theta = float(np.linalg.norm(w))
-    k = np.array([[0, -w[2], w[1]], [w[2], 0, -w[0]], [-w[1], w[0], 0]])
-    if theta < 1e-12:
-        return np.eye(3) + k
-    k /= theta
-    return np.eye(3) + np.sin(theta) * k + (1 - np.cos(theta)) * (k @ k)
-
-
 def icp_point_to_plane(
     source: np.ndarray,
     source_normals: np.ndarray,
@@ -311,7 +301,7 @@ def icp_point_to_plane(
         except np.linalg.LinAlgError:
             break
         step = np.eye(4)
-        step[:3, :3] = _small_rotation(x[:3])
+        step[:3, :3] = rotation_from_vector(x[:3])
         step[:3, 3] = x[3:]
         before, previous, T = previous, T, step @ T
         if np.linalg.norm(x[:3]) * extent + np.linalg.norm(x[3:]) < tolerance * max_dist:
@@ -498,7 +488,7 @@ def _feature_level_tree(pre: PreprocessedScan) -> cKDTree:
     return pre._cache["tree"]
 
 
-def _nearest(tree, pts_dst, nrm_dst, pts_src, nrm_src, T_dst_src, max_dist, cos):
+def nearest_with_normals(tree, pts_dst, nrm_dst, pts_src, nrm_src, T_dst_src, max_dist, cos):
     """Per source point: nearest destination index (-1 if none within max_dist or if the
     normals disagree) and the residual to that point's tangent plane (inf if none)."""
     q = transform_points(T_dst_src, pts_src)
@@ -676,8 +666,8 @@ def score_alignment(
         pi, ni, pj, nj = pre_i.points, pre_i.normals, pre_j.points, pre_j.normals
         ti, tj = _feature_level_tree(pre_i), _feature_level_tree(pre_j)
     max_dist, cos = cfg.score_distance_voxels * pre_i.voxel_size, cfg.score_min_normal_cos
-    near_j, r_j = _nearest(ti, pi, ni, pj, nj, T_i_j, max_dist, cos)
-    near_i, r_i = _nearest(tj, pj, nj, pi, ni, invert_transform(T_i_j), max_dist, cos)
+    near_j, r_j = nearest_with_normals(ti, pi, ni, pj, nj, T_i_j, max_dist, cos)
+    near_i, r_i = nearest_with_normals(tj, pj, nj, pi, ni, invert_transform(T_i_j), max_dist, cos)
     has_j, has_i = near_j >= 0, near_i >= 0
     mutual = np.count_nonzero(near_i[near_j[has_j]] == np.flatnonzero(has_j))
     noise = 0.5 * (pre_i.noise + pre_j.noise)

@@ -168,7 +168,7 @@ def joint_icp(
         ]
         return out
 
-    with single_threaded_blas(), ThreadPoolExecutor(cfg.align.num_workers) as pool:
+    with single_threaded_blas(), ThreadPoolExecutor(cfg.workers) as pool:
         for it in range(rc.joint_icp_iterations):
             terms = terms_of(pool)
             if not terms:

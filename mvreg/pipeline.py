@@ -154,14 +154,16 @@ def register(
     voxel = derive_voxel_size(scans, cfg.preprocess)
     prog.stage("preprocess", len(scans))
     pre = preprocess_all(
-        scans, voxel, cfg.preprocess, cfg.align.num_workers, progress=lambda _p: prog.advance()
+        scans, voxel, cfg.preprocess, cfg.workers, progress=lambda _p: prog.advance()
     )
     timed("preprocess")
 
     pairs = candidate_pairs(pre, cfg.pairs)
     prog.stage("pairs", len(pairs))
-    results = align_pairs(pre, pairs, cfg.align, cfg.seed, progress=lambda _r: prog.advance())
-    results = connect_unconnected(pre, results, cfg.align, cfg.search)
+    results = align_pairs(
+        pre, pairs, cfg.align, cfg.seed, progress=lambda _r: prog.advance(), workers=cfg.workers
+    )
+    results = connect_unconnected(pre, results, cfg.align, cfg.search, workers=cfg.workers)
     if pair_hook is not None:
         results = pair_hook(pre, results)
     timed("pairwise")
@@ -175,7 +177,7 @@ def register(
 
     dense_levels = prepare_dense_levels(scans, pre, cfg)  # in the background meanwhile
     w0, robust_log = _cycle_check(pre, results, cfg)
-    tracks = build_tracks(pre, results, cfg.tracks, pair_weights=w0, workers=cfg.align.num_workers)
+    tracks = build_tracks(pre, results, cfg.tracks, pair_weights=w0, workers=cfg.workers)
     sol: GlobalSolution | None = None
     weights = np.zeros(len(tracks.pairs))
     refine_log, joint_log = [], None

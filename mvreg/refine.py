@@ -257,7 +257,7 @@ def prepare_dense_levels(scans, pre, cfg: RegisterConfig):
         return None
     voxel = cfg.refine.dense_voxel_ratio * pre[0].voxel_size
     pool = ThreadPoolExecutor(1)
-    future = pool.submit(_dense_levels, scans, pre, voxel, cfg.align.num_workers)
+    future = pool.submit(_dense_levels, scans, pre, voxel, cfg.workers)
     pool.shutdown(wait=False)  # the task runs on; the pool takes no more
     return future
 
@@ -350,7 +350,7 @@ def refine_rounds(
 
     With ``cfg.refine.correspondences == "pairwise-icp"`` (default) each pair is first
     refined by point-to-plane ICP from its relative pose under the global poses
-    (:func:`_pair_icp`, run on ``cfg.align.num_workers`` threads) and matched under that
+    (:func:`_pair_icp`, run on ``cfg.workers`` threads) and matched under that
     pose (a pair whose ICP runs away is matched under the global poses). Residuals for the
     robust weights are measured under the global poses, so a pair whose refined pose
     disagrees with the rest is down-weighted.
@@ -367,7 +367,7 @@ def refine_rounds(
             points, normals, trees = dense_levels.result()
         elif dense:
             points, normals, trees = _dense_levels(
-                scans, pre, cfg.refine.dense_voxel_ratio * voxel, cfg.align.num_workers
+                scans, pre, cfg.refine.dense_voxel_ratio * voxel, cfg.workers
             )
         else:
             points = [p.fine_points for p in pre]
@@ -384,7 +384,7 @@ def refine_rounds(
             max_dist=dist_v * voxel, cfg=cfg, tc=tc,
         )  # fmt: skip
         used, corr, dists = [], [], []
-        with single_threaded_blas(), ThreadPoolExecutor(cfg.align.num_workers) as pool:
+        with single_threaded_blas(), ThreadPoolExecutor(cfg.workers) as pool:
             for out in pool.map(match, candidates):
                 if out is not None:
                     used.append(out[0])

@@ -69,13 +69,16 @@ from collections.abc import Callable, Sequence
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Literal
 
 import numpy as np
-from pydantic import BaseModel, ConfigDict, Field, ValidationError
+from pydantic import BaseModel, ValidationError
 from scipy.spatial import cKDTree
 
 from mvreg.config import RegisterConfig, load_config
+from mvreg.config.align import AlignConfig
+from mvreg.config.preprocess import PreprocessConfig
+from mvreg.config.sequence import SequenceConfig
+from mvreg.config.tracks import TracksConfig
 from mvreg.errors import ConfigError, InputError
 from mvreg.geometry import invert_transform, rotation_angle_deg, transform_points
 from mvreg.io.loaders import Scan
@@ -83,7 +86,6 @@ from mvreg.joint_icp import joint_icp
 from mvreg.metrics import pose_errors
 from mvreg.pairwise._threads import single_threaded_blas
 from mvreg.pairwise.align import (
-    AlignConfig,
     PairResult,
     _decide,
     align_pair,
@@ -92,7 +94,6 @@ from mvreg.pairwise.align import (
     score_alignment,
 )
 from mvreg.pairwise.preprocess import (
-    PreprocessConfig,
     PreprocessedScan,
     _plane_noise,
     derive_voxel_size,
@@ -100,7 +101,6 @@ from mvreg.pairwise.preprocess import (
 )
 from mvreg.pairwise.tracks import (
     Tracks,
-    TracksConfig,
     build_tracks,
     tracks_from_correspondences,
 )
@@ -118,58 +118,6 @@ from mvreg.viz import NullRecorder
 TIMESTAMPS_FILE = "timestamps.txt"
 # Refinement re-aligns a pair whose points lie this many voxels apart under the global poses.
 REFINE_DISAGREEMENT_VOXELS = 0.1
-
-
-class SequenceConfig(BaseModel):
-    """Settings of the sequence stages (odometry, gaps, sequential pairs, loop closures).
-
-    Distances are relative to the data: KISS-ICP's voxel to the largest point range, the
-    loop radius to the median point range.
-    """
-
-    model_config = ConfigDict(extra="forbid")
-
-    odometry_voxel_ranges: float = Field(
-        0.01, gt=0, le=0.5, description="KISS-ICP voxel / largest point range"
-    )
-    odometry_threads: int = Field(1, ge=0, description="KISS-ICP threads (0: all cores)")
-    gap_factor: float = Field(
-        1.5, gt=1, description="a time step above this times the median step is a gap"
-    )
-    skip_pairs: int = Field(1, ge=0, description="also pair scan k with k+2 .. k+1+skip_pairs")
-    fallback_ransac: bool = Field(True, description="feature RANSAC when ICP from odometry fails")
-    loop_radius_ranges: float = Field(
-        0.5, gt=0, description="loop-closure search radius / median point range"
-    )
-    loop_drift_fraction: float = Field(
-        0.05, ge=0, description="the radius grows by this times the path between the scans"
-    )
-    loop_min_frames: int = Field(10, ge=2, description="loop pairs are at least this many apart")
-    loop_min_path_radii: float = Field(
-        2.0, ge=0, description="path between a loop pair's scans >= this times the radius"
-    )
-    loop_max_per_scan: int = Field(2, ge=0, description="nearest earlier candidates per scan")
-    loop_min_overlap_ratio: float = Field(0.3, ge=0, le=1)
-    normal_neighbours: int = Field(
-        10, ge=3, description="normals of range scans: PCA of this many nearest points"
-    )
-    normal_radius_voxels: float = Field(
-        6.0, gt=0, description="... within this many voxels of the level (feature or fine)"
-    )
-    correspondences: Literal["pose", "nearest"] = Field(
-        "pose", description="tracks from each pair's pose (pose_tracks) or nearest points"
-    )
-    correspondences_per_pair: int | None = Field(
-        400, ge=4, description="tracks: thin each pair to this many (if tracks sets none)"
-    )
-    min_normal_cos: float = Field(
-        0.7,
-        ge=-1,
-        le=1,
-        description="tracks: normals must agree (unless tracks.min_normal_cos is given); "
-        "LiDAR normals are noisier than a range scanner's, and the sequence benchmark "
-        "was measured at 0.7",
-    )
 
 
 @dataclass
@@ -872,7 +820,7 @@ def align_with_guesses(
 ) -> list[PairResult]:
     """ICP of each pair (i, j) from each of its guesses ``(label, T_i_j)`` (skipping a
     guess within half a voxel of one already tried), keeping the better result
-    (:func:`_better`). Runs on ``cfg.align.num_workers`` threads; results in the order
+    (:func:`_better`). Runs on ``cfg.workers`` threads; results in the order
     of ``pairs`` with ``stats["kind"] = kind`` and ``stats["init"]`` = the guess's label.
     """
     for p in pre:  # shared trees, built before the threads start
@@ -892,7 +840,7 @@ def align_with_guesses(
         best.stats["guesses_tried"] = len(tried)
         return best
 
-    return _parallel(run, list(range(len(pairs))), cfg.align.num_workers, advance)
+    return _parallel(run, list(range(len(pairs))), cfg.workers, advance)
 
 
 def _relative(T_scan: np.ndarray, i: int, j: int) -> np.ndarray:
@@ -992,7 +940,7 @@ def ransac_fallback(
         return alt if alt.accepted else old
 
     out = list(results)
-    for k, res in zip(todo, _parallel(run, todo, cfg.align.num_workers, advance), strict=True):
+    for k, res in zip(todo, _parallel(run, todo, cfg.workers, advance), strict=True):
         out[k] = res
     return out
 
@@ -1218,7 +1166,7 @@ def refine_pose_graph(
             return rescore(new, pre[r.i], pre[r.j], cfg.align)
 
         changed = 0
-        for n, new in zip(todo, _parallel(run, todo, cfg.align.num_workers), strict=True):
+        for n, new in zip(todo, _parallel(run, todo, cfg.workers), strict=True):
             if new.accepted:
                 results[n] = new
                 changed += 1

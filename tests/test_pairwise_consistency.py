@@ -101,7 +101,8 @@ def test_pair_icp_recovers_a_slide_along_planes():
 def test_support_prefers_the_hypothesis_outside_free_space():
     """Teapot seed 1, scan_005-scan_010: the flip passed the rule with 3986 correspondences
     and 0.003 of its points in free space, the right pose with 4002 and 0.000."""
-    from mvreg.pairwise.align import AlignConfig, _support
+    from mvreg.config import AlignConfig
+    from mvreg.pairwise.align import _support
 
     cfg = AlignConfig()
     flip = {"num_correspondences": 3986, "free_space_violation": 0.003}

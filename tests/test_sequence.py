@@ -212,8 +212,8 @@ def test_bad_input_and_settings(tmp_path):
 def test_sequence_tracks_keep_their_normal_agreement_unless_given():
     """register's tracks default to 0.9; sequences keep 0.7 unless tracks.min_normal_cos
     is given (LiDAR normals are noisier)."""
-    from mvreg.config import load_config
-    from mvreg.sequence import SequenceConfig, _tracks_config
+    from mvreg.config import SequenceConfig, load_config
+    from mvreg.sequence import _tracks_config
 
     cfg = load_config()
     assert cfg.tracks.min_normal_cos == 0.9

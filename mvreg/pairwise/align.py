@@ -85,80 +85,12 @@ from dataclasses import dataclass, field
 from typing import Literal
 
 import numpy as np
-from pydantic import BaseModel, ConfigDict, Field
 from scipy.spatial import cKDTree
 
+from mvreg.config.align import AlignConfig
 from mvreg.geometry import invert_transform, rotation_from_vector, transform_points
 from mvreg.pairwise._threads import single_threaded_blas
 from mvreg.pairwise.preprocess import PreprocessedScan
-
-
-class AlignConfig(BaseModel):
-    """Stage 3 settings. Distances are multiples of the feature voxel size ``v``."""
-
-    model_config = ConfigDict(extra="forbid")
-
-    feature_dims: int = Field(16, ge=1, le=33, description="PCA dims for FPFH matching")
-    feature_match_eps: float = Field(
-        1.0, ge=0, description="approximate descriptor search (0 = exact)"
-    )
-    ransac_backend: Literal["numpy", "open3d"] = "numpy"
-    ransac_max_iterations: int = Field(4000, ge=1)
-    ransac_confidence: float = Field(0.999, gt=0, lt=1)
-    ransac_distance_voxels: float = Field(1.5, gt=0, description="RANSAC inlier distance / v")
-    ransac_edge_length_ratio: float = Field(0.9, gt=0, lt=1)
-    ransac_normal_angle_deg: float = Field(30.0, gt=0, le=180)
-    ransac_validate_top: int = Field(8, ge=1, description="hypotheses re-ranked on the scans")
-    ransac_hypotheses_tried: int = Field(
-        8, ge=1, description="distinct RANSAC hypotheses verified (ICP + acceptance rule)"
-    )
-    screen_icp_iterations: int = Field(
-        3, ge=0, description="feature-level ICP iterations before an alternative is screened"
-    )
-    icp_coarse_distance_voxels: float = Field(2.0, gt=0, description="feature-level ICP / v")
-    icp_fine_distance_voxels: tuple[float, ...] = Field(
-        (1.0, 0.5), description="fine-level ICP distances / v, one ICP run each"
-    )
-    icp_max_iterations: int = Field(30, ge=1)
-    icp_max_source_points: int = Field(1500, ge=100)
-    icp_min_normal_cos: float = Field(0.5, ge=-1, le=1)
-    score_distance_voxels: float = Field(1.0, gt=0, description="neighbour distance / v")
-    score_min_normal_cos: float = Field(0.7, ge=-1, le=1)
-    tight_residual_ratio: float = Field(3.0, gt=0, description="overlap residual / noise")
-    min_overlap_ratio: float = Field(0.1, ge=0, le=1)
-    max_residual_ratio: float = Field(3.5, gt=0)
-    min_correspondences: int = Field(50, ge=3)
-    max_free_space_violation: float = Field(
-        0.005, ge=0, le=1, description="share of points seen in front of the other view"
-    )
-    free_space_tolerance_voxels: float = Field(1.0, gt=0, description="depth slack / v")
-    max_unseen_violation: float = Field(
-        0.008,
-        ge=0,
-        le=1,
-        description="share of points facing the other view's sensor where it saw nothing",
-    )
-    unseen_radius_voxels: float = Field(
-        3.0, gt=0, description="no point of the other view within this lateral distance / v"
-    )
-    free_space_min_facing_cos: float = Field(0.7, ge=0, lt=1)
-    relative_residual_factor: float | None = Field(
-        1.5,
-        gt=1,
-        description="align_pairs: reject residual_ratio above this times the reference of "
-        "the best-overlapping pairs (None: off)",
-    )
-    relative_residual_floor_fine_voxels: float = Field(
-        0.05,
-        ge=0,
-        description="align_pairs: a median residual below this many fine voxels passes the "
-        "relative test whatever the reference (noise-free scans: residuals of correct pairs "
-        "differ by the sampling alone, tiny but several times apart)",
-    )
-    coarse_gate_slack: float = Field(
-        3.0, ge=1, description="feature-level ICP must pass the rule loosened this much"
-    )
-    num_workers: int = Field(2, ge=1, description="pairs aligned concurrently (threads)")
 
 
 @dataclass
@@ -866,10 +798,11 @@ def align_pairs(
     cfg: AlignConfig | None = None,
     seed: int = 0,
     progress: Callable[[PairResult], None] | None = None,
+    workers: int = 2,
 ) -> list[PairResult]:
     """Align every candidate pair; results in the order of ``pairs``.
 
-    Pairs run on ``cfg.num_workers`` threads (KD-tree searches and NumPy release the
+    Pairs run on ``workers`` threads (KD-tree searches and NumPy release the
     GIL); each pair has its own seed (:func:`pair_seed`), so results do not depend on
     the number of workers or the order of completion. ``progress`` is called (from the
     calling thread) after each pair. The Open3D backend always runs sequentially.
@@ -887,7 +820,7 @@ def align_pairs(
         i, j = pair
         return align_pair(pre[i], pre[j], cfg, pair_seed(seed, i, j), i=i, j=j, feature_basis=basis)
 
-    workers = 1 if cfg.ransac_backend == "open3d" else cfg.num_workers
+    workers = 1 if cfg.ransac_backend == "open3d" else workers
     results: list[PairResult] = []
     # Limit BLAS here, before any worker starts: the limit is process-wide.
     with single_threaded_blas():

@@ -11,19 +11,10 @@ from __future__ import annotations
 from collections.abc import Sequence
 
 import numpy as np
-from pydantic import BaseModel, ConfigDict, Field
 from scipy.spatial import cKDTree
 
+from mvreg.config.pairs import PairsConfig
 from mvreg.pairwise.preprocess import PreprocessedScan
-
-
-class PairsConfig(BaseModel):
-    """Stage 2 settings."""
-
-    model_config = ConfigDict(extra="forbid")
-
-    all_pairs_max_scans: int = Field(16, ge=2, description="try every pair up to this many")
-    neighbours_per_scan: int = Field(8, ge=1, description="k most similar scans above it")
 
 
 def global_descriptor(pre: PreprocessedScan) -> np.ndarray:

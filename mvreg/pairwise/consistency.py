@@ -34,8 +34,9 @@ from collections.abc import Sequence
 
 import numpy as np
 
+from mvreg.config.align import AlignConfig
 from mvreg.geometry import invert_transform, transform_points
-from mvreg.pairwise.align import AlignConfig, PairResult, geometric_support, score_alignment
+from mvreg.pairwise.align import PairResult, geometric_support, score_alignment
 from mvreg.pairwise.preprocess import PreprocessedScan
 
 

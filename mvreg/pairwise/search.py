@@ -29,12 +29,11 @@ from collections.abc import Callable, Sequence
 from concurrent.futures import ThreadPoolExecutor
 
 import numpy as np
-from pydantic import BaseModel, ConfigDict, Field
 from scipy.spatial.transform import Rotation
 
+from mvreg.config.align import AlignConfig, SearchConfig
 from mvreg.pairwise._threads import single_threaded_blas
 from mvreg.pairwise.align import (
-    AlignConfig,
     PairResult,
     _decide,
     _feature_level_tree,
@@ -47,19 +46,6 @@ from mvreg.pairwise.align import (
 )
 from mvreg.pairwise.candidates import global_descriptor
 from mvreg.pairwise.preprocess import PreprocessedScan
-
-
-class SearchConfig(BaseModel):
-    """Stage 3b settings (distances in multiples of the voxel size ``v``)."""
-
-    model_config = ConfigDict(extra="forbid")
-
-    enabled: bool = True
-    partners: int = Field(3, ge=1, description="scans of the connected set tried per scan")
-    offset_deg: float = Field(20.0, ge=0, le=90, description="turn of the group's copies")
-    screen_source_points: int = Field(500, ge=50)
-    screen_distances_voxels: tuple[float, ...] = Field((8.0, 4.0, 2.0))
-    screen_iterations: int = Field(6, ge=1, description="ICP iterations per distance")
 
 
 def rotation_starts(offset_deg: float = 20.0) -> np.ndarray:
@@ -77,6 +63,7 @@ def search_pair(
     search: SearchConfig | None = None,
     i: int = 0,
     j: int = 1,
+    workers: int = 2,
 ) -> PairResult:
     """Align j to i from every start rotation (module doc); accepted or not."""
     cfg, search = cfg or AlignConfig(), search or SearchConfig()
@@ -99,7 +86,7 @@ def search_pair(
         scores = score_alignment(pre_i, pre_j, T, cfg, level="feature")
         return T if not _decide(scores, cfg, slack=cfg.coarse_gate_slack) else None
 
-    with single_threaded_blas(), ThreadPoolExecutor(max_workers=cfg.num_workers) as pool:
+    with single_threaded_blas(), ThreadPoolExecutor(max_workers=workers) as pool:
         survivors = [
             T for T in pool.map(screen, rotation_starts(search.offset_deg)) if T is not None
         ]
@@ -140,6 +127,7 @@ def connect_unconnected(
     cfg: AlignConfig | None = None,
     search: SearchConfig | None = None,
     progress: Callable[[PairResult], None] | None = None,
+    workers: int = 2,
 ) -> list[PairResult]:
     """``results`` with searched pairs for scans outside the largest connected set.
 
@@ -164,7 +152,7 @@ def connect_unconnected(
         order = inside[np.argsort(np.linalg.norm(desc[inside] - desc[a], axis=1), kind="stable")]
         for b in order[: search.partners]:
             i, j = (int(min(a, b)), int(max(a, b)))
-            res = search_pair(pre[i], pre[j], cfg, search, i=i, j=j)
+            res = search_pair(pre[i], pre[j], cfg, search, i=i, j=j, workers=workers)
             if (i, j) in index:
                 if res.accepted or not results[index[(i, j)]].accepted:
                     results[index[(i, j)]] = res

@@ -1,0 +1,106 @@
+"""Configuration of a run, as pure data: one pydantic model per stage, one root model.
+
+Defaults < config file (JSON or YAML, ``--config``) < ``--set section.field=value`` and the
+named command-line options. This package imports nothing of the algorithms: a stage
+receives its own section (and plain values such as the scales of the data), never the
+whole root. Values derived from the data (the voxel sizes) are resolved once by the
+pipeline and written back into the saved configuration (``RegisterConfig.resolved``).
+"""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+from pydantic import BaseModel, ConfigDict, Field, ValidationError
+
+from mvreg.config.align import AlignConfig, SearchConfig
+from mvreg.config.output import OutputConfig
+from mvreg.config.pairs import PairsConfig
+from mvreg.config.preprocess import PreprocessConfig
+from mvreg.config.refine import RefineConfig
+from mvreg.config.robust import RobustConfig
+from mvreg.config.sequence import SequenceConfig
+from mvreg.config.solve import SolveConfig
+from mvreg.config.tracks import TracksConfig
+from mvreg.errors import ConfigError
+
+__all__ = [
+    "AlignConfig",
+    "OutputConfig",
+    "PairsConfig",
+    "PreprocessConfig",
+    "RefineConfig",
+    "RegisterConfig",
+    "RobustConfig",
+    "SearchConfig",
+    "SequenceConfig",
+    "SolveConfig",
+    "TracksConfig",
+    "load_config",
+]
+
+
+class RegisterConfig(BaseModel):
+    """Everything ``register`` does, by stage."""
+
+    model_config = ConfigDict(extra="forbid")
+
+    seed: int = Field(0, ge=0, description="same seed, same poses")
+    workers: int = Field(2, ge=1, description="threads for per-scan and per-pair work")
+    min_points: int = Field(100, ge=3, description="a scan needs at least this many points")
+    preprocess: PreprocessConfig = Field(default_factory=PreprocessConfig)
+    pairs: PairsConfig = Field(default_factory=PairsConfig)
+    align: AlignConfig = Field(default_factory=AlignConfig)
+    search: SearchConfig = Field(default_factory=SearchConfig)
+    tracks: TracksConfig = Field(default_factory=TracksConfig)
+    solve: SolveConfig = Field(default_factory=SolveConfig)
+    robust: RobustConfig = Field(default_factory=RobustConfig)
+    refine: RefineConfig = Field(default_factory=RefineConfig)
+    output: OutputConfig = Field(default_factory=OutputConfig)
+    sequence: SequenceConfig = Field(default_factory=SequenceConfig)
+
+
+def load_config(path: str | Path | None = None, **overrides) -> RegisterConfig:
+    """Defaults, then the file (JSON, or YAML when PyYAML is installed), then overrides.
+
+    ``overrides`` use dotted keys for nested fields: ``{"solve.solver": "gpm",
+    "preprocess.voxel_size": 0.002, "seed": 3}``; None values are ignored.
+    """
+    data: dict = {}
+    if path is not None:
+        path = Path(path)
+        try:
+            text = path.read_text()
+        except OSError as e:
+            raise ConfigError(f"{path}: cannot read config ({e.strerror})") from None
+        try:
+            if path.suffix.lower() in (".yaml", ".yml"):
+                try:
+                    import yaml
+                except ImportError:
+                    raise ConfigError(f"{path}: YAML needs PyYAML; use JSON instead") from None
+                data = yaml.safe_load(text) or {}
+            else:
+                data = json.loads(text)
+        except (ValueError, TypeError) as e:
+            raise ConfigError(f"{path}: not valid JSON/YAML ({e})") from None
+        if not isinstance(data, dict):
+            raise ConfigError(f"{path}: the config must be a mapping of stage -> settings")
+    for key, value in overrides.items():
+        if value is None:
+            continue
+        node = data
+        parts = key.split(".")
+        for p in parts[:-1]:
+            node = node.setdefault(p, {})
+        node[parts[-1]] = value
+    try:
+        return RegisterConfig.model_validate(data)
+    except ValidationError as e:
+        err = e.errors()[0]
+        where = ".".join(str(x) for x in err["loc"])
+        raise ConfigError(
+            f"{'config' if path is None else path}: {where}: {err['msg']}"
+            + (f" (got {err.get('input')!r})" if "input" in err else "")
+        ) from None

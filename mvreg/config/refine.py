@@ -1,0 +1,65 @@
+"""Settings of the multiview refinement rounds and the joint point-to-plane ICP."""
+
+from __future__ import annotations
+
+from typing import Literal
+
+from pydantic import BaseModel, ConfigDict, Field
+
+
+class RefineConfig(BaseModel):
+    """Multiview ICP rounds (stage 7): correspondences between all overlapping scans
+    recomputed with the current global poses, then a warm-started global re-solve.
+
+    Nearest-neighbour pairs under the current poses pull only at the scale of the point
+    spacing and barely at all along a plane (both scans' samples of a face look alike
+    wherever they slide), so on CAD-like parts the rounds stalled near the start
+    (``correspondences="nearest"``). By default each pair is first refined by
+    point-to-plane ICP, which does move along planes as far as the other faces require,
+    and its correspondences are taken under that refined pose.
+
+    After the rounds, a joint point-to-plane ICP moves all poses together
+    (``joint_icp_*``, :mod:`mvreg.joint_icp`): each pair then constrains only the
+    directions its overlap does, which the rounds' point-to-point tracks cannot express.
+    """
+
+    model_config = ConfigDict(extra="forbid")
+
+    rounds: int = Field(3, ge=0, description="--refine N")
+    distance_voxels: tuple[float, ...] = Field(
+        (1.0, 0.6, 0.3), description="correspondence distance / feature voxel, per round"
+    )
+    min_correspondences: int = Field(30, ge=3)
+    correspondences: Literal["pairwise-icp", "nearest"] = Field(
+        "pairwise-icp",
+        description="pairwise-icp: each overlapping pair is first refined by point-to-plane "
+        "ICP from its relative pose under the global poses and matched (mutual nearest "
+        "neighbours) under that pose; nearest: matched under the global poses",
+    )
+    dense_voxel_ratio: float | None = Field(
+        0.25,
+        gt=0,
+        description="the last round uses the raw scans resampled at this fraction of the "
+        "feature voxel (denser correspondences, less sampling bias); None: fine points",
+    )
+    joint_icp_iterations: int = Field(
+        10,
+        ge=0,
+        description="after the rounds, at most this many Gauss-Newton iterations of joint "
+        "point-to-plane ICP over all poses (mvreg.joint_icp); 0: off",
+    )
+    joint_icp_distance_voxels: float = Field(
+        0.5, gt=0, description="joint ICP correspondence distance / feature voxel"
+    )
+    joint_icp_points_per_pair: int = Field(
+        4000, ge=100, description="joint ICP: source points per pair (evenly strided)"
+    )
+    joint_icp_tolerance_voxels: float = Field(
+        0.01, gt=0, description="joint ICP stops when no scan moves more than this"
+    )
+    joint_icp_max_move_voxels: float = Field(
+        1.0,
+        gt=0,
+        description="joint ICP results that move any point of a scan further than this "
+        "(feature voxels) from the certified poses are not kept",
+    )

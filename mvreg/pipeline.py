@@ -18,8 +18,16 @@ import numpy as np
 from mvreg.config import RegisterConfig, load_config
 from mvreg.errors import InputError
 from mvreg.geometry import transform_points
+from mvreg.globalstage.joint_icp import joint_icp
+from mvreg.globalstage.refine import (
+    GlobalSolution,
+    pair_disagreements,
+    prepare_dense_levels,
+    refine_rounds,
+    robust_rounds,
+    solve_tracks,
+)
 from mvreg.io.loaders import Scan, list_scan_files, load_scan
-from mvreg.joint_icp import joint_icp
 from mvreg.metrics import overlap_residual, pose_errors
 from mvreg.pairwise import (
     PairResult,
@@ -31,14 +39,6 @@ from mvreg.pairwise import (
 )
 from mvreg.pairwise.consistency import inconsistent_pairs
 from mvreg.pairwise.search import connect_unconnected
-from mvreg.refine import (
-    GlobalSolution,
-    pair_disagreements,
-    prepare_dense_levels,
-    refine_rounds,
-    robust_rounds,
-    solve_tracks,
-)
 from mvreg.viz import NullRecorder
 
 

@@ -81,8 +81,16 @@ from mvreg.config.sequence import SequenceConfig
 from mvreg.config.tracks import TracksConfig
 from mvreg.errors import ConfigError, InputError
 from mvreg.geometry import invert_transform, rotation_angle_deg, transform_points
+from mvreg.globalstage.joint_icp import joint_icp
+from mvreg.globalstage.refine import (
+    GlobalSolution,
+    pair_residuals,
+    refine_rounds,
+    robust_rounds,
+    robust_weights,
+    solve_tracks,
+)
 from mvreg.io.loaders import Scan
-from mvreg.joint_icp import joint_icp
 from mvreg.metrics import pose_errors
 from mvreg.pairwise._threads import single_threaded_blas
 from mvreg.pairwise.align import (
@@ -105,14 +113,6 @@ from mvreg.pairwise.tracks import (
     tracks_from_correspondences,
 )
 from mvreg.pipeline import Registration, load_source
-from mvreg.refine import (
-    GlobalSolution,
-    pair_residuals,
-    refine_rounds,
-    robust_rounds,
-    robust_weights,
-    solve_tracks,
-)
 from mvreg.viz import NullRecorder
 
 TIMESTAMPS_FILE = "timestamps.txt"

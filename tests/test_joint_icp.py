@@ -7,9 +7,9 @@ import pytest
 from scipy.spatial.transform import Rotation
 
 from mvreg.config import load_config
-from mvreg.joint_icp import joint_icp
+from mvreg.globalstage.joint_icp import joint_icp
+from mvreg.globalstage.refine import GlobalSolution, _dense_levels
 from mvreg.metrics import pose_errors
-from mvreg.refine import GlobalSolution, _dense_levels
 from tests.conftest import require_shared
 
 

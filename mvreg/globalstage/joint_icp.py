@@ -35,10 +35,10 @@ from mvreg.geometry import (
     rotation_from_vector,
     transform_points,
 )
+from mvreg.globalstage.refine import overlapping_pairs, robust_weights
 from mvreg.pairwise import PreprocessedScan
 from mvreg.pairwise._threads import single_threaded_blas
 from mvreg.pairwise.align import nearest_with_normals
-from mvreg.refine import overlapping_pairs, robust_weights
 
 
 @dataclass

@@ -7,8 +7,10 @@ import pytest
 from scipy.spatial.transform import Rotation
 
 from mvreg.config import load_config
+from mvreg.executor import ThreadExecutor
 from mvreg.globalstage.joint_icp import joint_icp
-from mvreg.globalstage.refine import GlobalSolution, _dense_levels
+from mvreg.globalstage.refine import dense_levels
+from mvreg.globalstage.solve import GlobalSolution
 from mvreg.metrics import pose_errors
 from tests.conftest import require_shared
 
@@ -28,11 +30,19 @@ def fandisk(tmp_path_factory):
     scans = [load_scan(f) for f in list_scan_files(out)]
     voxel = derive_voxel_size(scans, cfg.preprocess)
     pre = preprocess_all(scans, voxel, cfg.preprocess, 2)
-    levels = _dense_levels(scans, pre, cfg.refine.dense_voxel_ratio * voxel)
+    levels = dense_levels(scans, pre, cfg.refine.dense_voxel_ratio * voxel)
     truth = np.stack([synth.T_world_scan[s.name] for s in scans])
     # The first scan is the world frame, as in register's results.
     truth = np.linalg.inv(truth[0]) @ truth
-    return cfg, pre, levels, truth, synth.object_diagonal
+    return cfg, pre, levels, truth, synth.object_diagonal, voxel
+
+
+def _joint(pre, sol, cfg, voxel, levels):
+    """joint_icp as the global stage calls it."""
+    return joint_icp(
+        pre, sol, cfg.refine, cfg.robust, cfg.tracks.min_normal_cos, voxel, ThreadExecutor(2),
+        levels=levels,
+    )  # fmt: skip
 
 
 def _perturbed(truth: np.ndarray, pre, deg: float, shift: float, seed: int) -> dict:
@@ -59,11 +69,11 @@ def test_joint_icp_recovers_perturbed_poses(fandisk):
     """Every scan turned by about 0.3 degrees and shifted by 0.3% of the diagonal: joint
     ICP brings all of them back to within 0.1 degrees, 0.1% of the diagonal at their
     centroids and the issue's 0.5% at their frame origins (1 to 3 diagonals away)."""
-    cfg, pre, levels, truth, diag = fandisk
+    cfg, pre, levels, truth, diag, voxel = fandisk
     start = _perturbed(truth, pre, 0.3, 0.003 * diag, seed=1)
     e0 = _errors(start, truth)
     assert e0.rotation_deg.max() > 0.2
-    sol, log = joint_icp(pre, GlobalSolution(start, None, None), cfg, levels=levels)
+    sol, log = _joint(pre, GlobalSolution(start, None, None), cfg, voxel, levels)
     e = _errors(sol.T_world_scan, truth)
     assert log["accepted"] and log["iterations"] >= 2, log
     assert e.rotation_deg.max() < 0.1, e.rotation_deg
@@ -75,12 +85,12 @@ def test_joint_icp_recovers_perturbed_poses(fandisk):
 
 
 def test_joint_icp_keeps_the_start_when_it_would_move_too_far(fandisk):
-    cfg, pre, levels, truth, diag = fandisk
+    cfg, pre, levels, truth, diag, voxel = fandisk
     start = _perturbed(truth, pre, 0.3, 0.003 * diag, seed=2)
     tight = cfg.model_copy(
         update={"refine": cfg.refine.model_copy(update={"joint_icp_max_move_voxels": 1e-4})}
     )
-    sol, log = joint_icp(pre, GlobalSolution(start, None, None), tight, levels=levels)
+    sol, log = _joint(pre, GlobalSolution(start, None, None), tight, voxel, levels)
     assert log["accepted"] is False and log["max_point_move_voxels"] > 1e-4
     for k in start:
         assert np.array_equal(sol.T_world_scan[k], start[k])
@@ -89,4 +99,4 @@ def test_joint_icp_keeps_the_start_when_it_would_move_too_far(fandisk):
 def test_joint_icp_off():
     cfg = load_config(**{"refine.joint_icp_iterations": 0})
     sol = GlobalSolution({0: np.eye(4), 1: np.eye(4)}, None, None)
-    assert joint_icp([], sol, cfg) == (sol, None)
+    assert _joint([], sol, cfg, 1.0, None) == (sol, None)

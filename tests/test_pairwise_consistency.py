@@ -75,7 +75,7 @@ def test_pair_icp_recovers_a_slide_along_planes():
     """Refinement's pair ICP (point-to-plane) on two views of a box corner: from a pose
     slid along the faces by 0.6 voxel and turned by 1 degree it returns to the truth,
     which nearest-neighbour correspondences under the start pose would not state."""
-    from mvreg.globalstage.refine import _pair_icp
+    from mvreg.globalstage.refine import pair_icp
 
     rng = np.random.default_rng(1)
     g = np.linspace(0.0, 1.0, 41)
@@ -90,7 +90,7 @@ def test_pair_icp_recovers_a_slide_along_planes():
     T_start = np.eye(4)
     T_start[:3, :3] = Rotation.from_rotvec(np.radians([0.0, 0.0, 1.0])).as_matrix()
     T_start[:3, 3] = [0.6 * voxel, -0.4 * voxel, 0.0]
-    T = _pair_icp(pts, nrm, cKDTree(pts), pts_j, nrm_j, T_start, voxel, 0.5)
+    T = pair_icp(pts, nrm, cKDTree(pts), pts_j, nrm_j, T_start, voxel, 0.5)
     assert T is not None
     err = np.linalg.norm(transform_points(T, pts_j) - pts_j, axis=1)
     start = np.linalg.norm(transform_points(T_start, pts_j) - pts_j, axis=1)
@@ -115,7 +115,7 @@ def test_support_prefers_the_hypothesis_outside_free_space():
 def test_robust_rounds_never_cut_a_scan_off():
     """Zeroing pairs by residual keeps every scan connected: of the zeroed pairs, the ones
     that alone join two parts come back at the floor weight, lowest residual first."""
-    from mvreg.globalstage.refine import keep_connected
+    from mvreg.globalstage.robust import keep_connected
 
     # 0-1-2 triangle, 2-3 the only link of scan 3, 3-4 and 2-4 two links of scan 4.
     pairs = np.array([(0, 1), (1, 2), (0, 2), (2, 3), (3, 4), (2, 4)])

@@ -213,11 +213,11 @@ def test_sequence_tracks_keep_their_normal_agreement_unless_given():
     """register's tracks default to 0.9; sequences keep 0.7 unless tracks.min_normal_cos
     is given (LiDAR normals are noisier)."""
     from mvreg.config import SequenceConfig, load_config
-    from mvreg.sequence import _tracks_config
+    from mvreg.sequence import sequence_tracks_config
 
     cfg = load_config()
     assert cfg.tracks.min_normal_cos == 0.9
-    assert _tracks_config(cfg, SequenceConfig()).min_normal_cos == 0.7
+    assert sequence_tracks_config(cfg.tracks, SequenceConfig()).min_normal_cos == 0.7
     given = load_config(**{"tracks.min_normal_cos": 0.8})
-    assert _tracks_config(given, SequenceConfig()).min_normal_cos == 0.8
-    assert _tracks_config(cfg, SequenceConfig()).max_correspondences_per_pair == 400
+    assert sequence_tracks_config(given.tracks, SequenceConfig()).min_normal_cos == 0.8
+    assert sequence_tracks_config(cfg.tracks, SequenceConfig()).max_correspondences_per_pair == 400

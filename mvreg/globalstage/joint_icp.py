@@ -1,43 +1,39 @@
-"""Stage 7, last step: joint point-to-plane ICP over all poses at once.
+"""Joint point-to-plane ICP over all poses at once, the last step of refinement.
 
-The refinement rounds before it (:func:`mvreg.refine.refine_rounds`) solve the global
-problem on point-to-point tracks, certified. Each pair contributes its couples in every
-direction, including those its overlap does not constrain: two scans that share only a
-curved face and a plane can slide or turn along them, and a pair's point-to-plane ICP then
-drifts by 0.3 to 0.7 degrees even when it starts at the true pose (fandisk seed 4, 0.2%
-noise, pairs on the dense level). The global solve averages those drifts in.
+Takes the preprocessed scans, a :class:`GlobalSolution` (certified poses), the ``refine``
+and ``robust`` sections and plain values (normal agreement, feature voxel, executor);
+returns the solution with new poses and a log. Every overlapping pair contributes only
+point-to-plane residuals n . (T_world_j p - T_world_i q), so a direction one pair leaves
+free (two scans sharing a plane and a cylinder) is set by the pairs that constrain it.
+All poses move together by Gauss-Newton (Cauchy-weighted residuals, pair weights as in
+the robust rounds, the first registered scan fixed), correspondences recomputed each
+iteration.
 
-Here every overlapping pair contributes only point-to-plane residuals
-n . (T_world_j p - T_world_i q), so a direction one pair leaves free is set by the pairs
-that do constrain it. All poses move together by Gauss-Newton (Cauchy-weighted residuals,
-pair weights as in the robust rounds, the first registered scan fixed), with
-correspondences recomputed each iteration. On fandisk seed 4 it took the rotation errors
-from 0.224 to 0.037 degrees in three iterations.
-
-The objective is quartic in the poses, so this step carries no certificate of its own: it
-starts from the certified solution, and the result logs how far it moved every scan. If it
-moves any scan further than ``RefineConfig.joint_icp_max_move_voxels`` (a direction
-without support, or a different fit), the certified poses are kept.
+The objective is not the certified one, so the step starts from the certified solution
+and the log says how far it moved every scan; a result that moves any scan further than
+``RefineConfig.joint_icp_max_move_voxels`` is not kept (the certified poses stay).
+Measurements behind this design: docs/design/globalstage.md.
 """
 
 from __future__ import annotations
 
 from collections.abc import Sequence
-from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, replace
 
 import numpy as np
 
-from mvreg.config import RegisterConfig
+from mvreg.config.refine import RefineConfig
+from mvreg.config.robust import RobustConfig
+from mvreg.executor import Executor
 from mvreg.geometry import (
     invert_transform,
     rotation_angle_deg,
     rotation_from_vector,
     transform_points,
 )
-from mvreg.globalstage.refine import overlapping_pairs, robust_weights
+from mvreg.globalstage.refine import overlapping_pairs
+from mvreg.globalstage.robust import robust_weights
 from mvreg.pairwise import PreprocessedScan
-from mvreg.pairwise._threads import single_threaded_blas
 from mvreg.pairwise.align import nearest_with_normals
 
 
@@ -111,10 +107,13 @@ def _gauss_newton_step(terms, pair_w, c, col, radius) -> np.ndarray:
 def joint_icp(
     pre: Sequence[PreprocessedScan],
     sol,
-    cfg: RegisterConfig,
+    cfg: RefineConfig,
+    robust: RobustConfig,
+    min_normal_cos: float,
+    voxel: float,
+    executor: Executor,
     levels=None,
     pairs: Sequence[tuple[int, int]] | None = None,
-    tracks_cfg=None,
 ):
     """Refine all poses of ``sol`` (a GlobalSolution) jointly by point-to-plane ICP.
 
@@ -122,86 +121,87 @@ def joint_icp(
     default the fine points). ``pairs``: scan pairs to use (default every registered pair
     whose world bounding boxes overlap). Returns (GlobalSolution with the new poses and the
     same solve result, log dict); the log says whether the new poses were kept
-    (``accepted``) and how far they moved each scan.
+    (``accepted``) and how far they moved each scan. (sol, None) when there is nothing
+    to do.
     """
-    rc = cfg.refine
-    tc = tracks_cfg if tracks_cfg is not None else cfg.tracks
     T0 = {int(k): np.array(v, dtype=np.float64) for k, v in sol.T_world_scan.items()}
     scans = sorted(T0)
-    if rc.joint_icp_iterations == 0 or len(scans) < 2:
+    if cfg.joint_icp_iterations == 0 or len(scans) < 2:
         return sol, None
-    voxel = pre[0].voxel_size
     if levels is None:
         levels = (
             [p.fine_points for p in pre],
             [p.fine_normals for p in pre],
             [p.fine_tree() for p in pre],
         )
-    points, normals, trees = levels
-    max_dist = rc.joint_icp_distance_voxels * voxel
+    max_dist = cfg.joint_icp_distance_voxels * voxel
     cand = (
         overlapping_pairs(pre, T0, max_dist)
         if pairs is None
         else [(i, j) for i, j in pairs if i in T0 and j in T0]
     )
     strides = {
-        s: max(1, int(np.ceil(len(points[s]) / rc.joint_icp_points_per_pair))) for s in scans
+        s: max(1, int(np.ceil(len(levels[0][s]) / cfg.joint_icp_points_per_pair))) for s in scans
     }
     world0 = {s: transform_points(T0[s], pre[s].points) for s in scans}
     centre = np.mean([w.mean(0) for w in world0.values()], axis=0)
     radius = max(float(np.max(np.linalg.norm(w - centre, axis=1))) for w in world0.values())
+
+    def terms_of(T):
+        def one(p):
+            return _pair_terms(p, T, *levels, strides, max_dist, min_normal_cos, centre)
+
+        return [t for t in executor.map(one, cand) if len(t.r) >= cfg.min_correspondences]
+
+    T, log, final = _iterate(T0, scans, terms_of, cfg, robust, voxel, centre, radius)
+    log["residual_median_end"] = (
+        float(np.median(np.abs(np.concatenate([t.r for t in final])))) if final else None
+    )
+    _moves(log, T, T0, world0, voxel)
+    log["accepted"] = bool(log["max_point_move_voxels"] <= cfg.joint_icp_max_move_voxels)
+    if not log["accepted"]:
+        return sol, log
+    return replace(sol, T_world_scan={s: T[s] for s in scans}), log
+
+
+def _iterate(T0, scans, terms_of, cfg: RefineConfig, robust, voxel, centre, radius):
+    """Gauss-Newton iterations from T0; (poses, log, the final terms)."""
     col = {s: 6 * k for k, s in enumerate(scans[1:])}  # the first scan is held fixed
     T = dict(T0)
     pair_w: dict[tuple[int, int], float] = {}
     log = {"pairs": 0, "iterations": 0, "residual_median_start": None}
+    for it in range(cfg.joint_icp_iterations):
+        terms = terms_of(T)
+        if not terms:
+            break
+        r_all = np.abs(np.concatenate([t.r for t in terms]))
+        if it == 0:  # pair weights from the pairs' residuals, as in the robust rounds
+            med = np.array([float(np.median(np.abs(t.r))) for t in terms])
+            w = robust_weights(med, voxel, robust)
+            pair_w = {(t.i, t.j): float(wk) for t, wk in zip(terms, w, strict=True)}
+            log["pairs"] = int(np.count_nonzero(w))
+            log["residual_median_start"] = float(np.median(r_all))
+        # Cauchy scale: 3 robust standard deviations of the residuals.
+        c = max(3.0 * 1.4826 * float(np.median(r_all)), 1e-6 * voxel)
+        step = _gauss_newton_step(terms, pair_w, c, col, radius)
+        moved = 0.0
+        for s, o in col.items():
+            w_rot, v = step[o : o + 3] / radius, step[o + 3 : o + 6]
+            D = np.eye(4)
+            D[:3, :3] = rotation_from_vector(w_rot)
+            D[:3, 3] = v + centre - D[:3, :3] @ centre  # turn about the centre
+            T[s] = D @ T[s]
+            moved = max(moved, float(np.linalg.norm(w_rot)) * radius + float(np.linalg.norm(v)))
+        log["iterations"] = it + 1
+        if moved < cfg.joint_icp_tolerance_voxels * voxel:
+            break
+    return T, log, terms_of(T)
 
-    def terms_of(pool):
-        out = [
-            t
-            for t in pool.map(
-                lambda p: _pair_terms(
-                    p, T, points, normals, trees, strides, max_dist, tc.min_normal_cos, centre
-                ),
-                cand,
-            )
-            if len(t.r) >= rc.min_correspondences
-        ]
-        return out
 
-    with single_threaded_blas(), ThreadPoolExecutor(cfg.workers) as pool:
-        for it in range(rc.joint_icp_iterations):
-            terms = terms_of(pool)
-            if not terms:
-                break
-            r_all = np.abs(np.concatenate([t.r for t in terms]))
-            if it == 0:  # pair weights from the pairs' residuals, as in the robust rounds
-                med = np.array([float(np.median(np.abs(t.r))) for t in terms])
-                w = robust_weights(med, voxel, cfg.robust)
-                pair_w = {(t.i, t.j): float(wk) for t, wk in zip(terms, w, strict=True)}
-                log["pairs"] = int(np.count_nonzero(w))
-                log["residual_median_start"] = float(np.median(r_all))
-            # Cauchy scale: 3 robust standard deviations of the residuals.
-            c = max(3.0 * 1.4826 * float(np.median(r_all)), 1e-6 * voxel)
-            step = _gauss_newton_step(terms, pair_w, c, col, radius)
-            moved = 0.0
-            for s, o in col.items():
-                w_rot, v = step[o : o + 3] / radius, step[o + 3 : o + 6]
-                D = np.eye(4)
-                D[:3, :3] = rotation_from_vector(w_rot)
-                D[:3, 3] = v + centre - D[:3, :3] @ centre  # turn about the centre
-                T[s] = D @ T[s]
-                moved = max(moved, float(np.linalg.norm(w_rot)) * radius + float(np.linalg.norm(v)))
-            log["iterations"] = it + 1
-            if moved < rc.joint_icp_tolerance_voxels * voxel:
-                break
-        final = terms_of(pool)
-    log["residual_median_end"] = (
-        float(np.median(np.abs(np.concatenate([t.r for t in final])))) if final else None
-    )
-    # How far each scan moved: rotation, and the largest displacement of its points.
-    rot = {}
-    disp = {}
-    for s in scans:
+def _moves(log: dict, T, T0, world0, voxel: float) -> None:
+    """How far each scan moved: rotation, and the largest displacement of its points."""
+    rot, disp = {}, {}
+    for s in T0:
         D = T[s] @ invert_transform(T0[s])
         rot[s] = float(rotation_angle_deg(D[None, :3, :3])[0])
         w = world0[s]
@@ -209,7 +209,3 @@ def joint_icp(
     log["max_rotation_change_deg"] = max(rot.values())
     log["max_point_move"] = max(disp.values())
     log["max_point_move_voxels"] = max(disp.values()) / voxel
-    log["accepted"] = bool(log["max_point_move_voxels"] <= rc.joint_icp_max_move_voxels)
-    if not log["accepted"]:
-        return sol, log
-    return replace(sol, T_world_scan={s: T[s] for s in scans}), log

@@ -58,7 +58,7 @@ def merged_cloud(reg, voxel_size: float | None = None):
         cols.append(np.repeat(colors[idx[name]][None], len(p), axis=0))
     pcd = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(np.concatenate(pts)))
     pcd.colors = o3d.utility.Vector3dVector(np.concatenate(cols))
-    v = voxel_size or reg.config.output.merged_voxel_size or 0.5 * reg.voxel_size
+    v = voxel_size or reg.config.output.merged_voxel_size or reg.scales.fine_voxel
     pcd = pcd.voxel_down_sample(v)
     return np.asarray(pcd.points), np.asarray(pcd.colors)
 

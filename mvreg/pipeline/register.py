@@ -1,0 +1,124 @@
+"""register(): a folder of scans in, globally aligned poses out. Reads as its stages:
+
+    load -> preprocess -> pair graph -> global stage -> evaluate
+
+The mode (:class:`~mvreg.pipeline.stages.UnorderedMode` by default, the sequence mode of
+:mod:`mvreg.sequence` for ``--sequence``) supplies preprocessing, the pair graph and the
+evaluation; :func:`run_pipeline` is the one list of stages both run.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from pathlib import Path
+
+import numpy as np
+
+from mvreg.config import RegisterConfig, load_config
+from mvreg.geometry import transform_points
+from mvreg.globalstage.solve import TrackSolver
+from mvreg.globalstage.stage import GlobalContext, GlobalStage
+from mvreg.pipeline.load import load_source
+from mvreg.pipeline.result import Registration, pair_table
+from mvreg.pipeline.run import Run
+from mvreg.pipeline.stages import Mode, UnorderedMode
+
+
+def register(
+    source: str | Path | Sequence[np.ndarray],
+    config: RegisterConfig | None = None,
+    *,
+    names: Sequence[str] | None = None,
+    recorder=None,
+    progress=None,
+    truth: dict[str, np.ndarray] | None = None,
+    pair_hook=None,
+    **overrides,
+) -> Registration:
+    """Register a folder of scans (or a list of (N, 3) arrays) into one frame.
+
+    Args:
+        source: folder of scan files, or point arrays in their own frames.
+        config: a RegisterConfig; else defaults with ``overrides`` (dotted keys, e.g.
+            ``**{"solve.solver": "gpm"}``, or plain ``seed=1``).
+        names: names of the arrays when ``source`` is a list.
+        recorder: a mvreg.viz Recorder (default: none).
+        progress: an object with stage(name, total) / advance(n) / done() (CLI: rich bars).
+        truth: {name: 4x4 T_world_scan} to evaluate against; by default read from
+            ``ground_truth.json`` in the folder. Used only to evaluate, never to solve.
+        pair_hook: optional ``f(pre, results) -> results`` applied after pairwise
+            alignment (benchmarks and tests use it to inject wrong pairs).
+    """
+    cfg = config if config is not None else load_config(**overrides)
+    run = Run(cfg, recorder, progress)
+    return run_pipeline(run, UnorderedMode(pair_hook), source, names, truth)
+
+
+def run_pipeline(run: Run, mode: Mode, source, names=None, truth=None, result_type=Registration):
+    """The stages of every run; ``mode`` decides preprocessing, pairing and evaluation."""
+    cfg, rec, prog = run.cfg, run.recorder, run.progress
+    scans, source_str, truth = load_source(source, names, cfg.min_points, truth, prog, mode.what)
+    run.timed("load")
+    rec.log_config(cfg.model_dump(mode="json"))
+    rec.log_raw_scans([s.name for s in scans], [s.points for s in scans])
+
+    scales, pre = mode.preprocess(run, scans)
+    run.timed("preprocess")
+    graph = mode.pair_graph(run, scans, pre, scales)
+
+    prog.stage("global solve")
+    ctx = GlobalContext(
+        cfg, scales.voxel, run.executor, TrackSolver(cfg.solve, cfg.seed, run.on_iteration), scans
+    )
+    out = GlobalStage(graph.plan).run(ctx, pre, graph.results, prog, run.timed)
+    prog.done()
+
+    names_all = [s.name for s in scans]
+    sol = out.solution
+    T = {} if sol is None else {names_all[i]: sol.T_world_scan[i] for i in sorted(sol.T_world_scan)}
+    reg = result_type(
+        scan_names=names_all,
+        T_world_scan=T,
+        unregistered=[n for n in names_all if n not in T],
+        solve=None if sol is None else sol.result,
+        pairs=pair_table(out.results, out.tracks, out.weights, graph.columns),
+        config=cfg,
+        scales=scales,
+        timings=run.timings,
+        robust_log=out.robust_log,
+        refine_log=out.refine_log,
+        joint_icp=out.joint_icp,
+        scans=scans,
+        source=source_str,
+    )
+    mode.evaluate(run, reg, pre, out.results, truth)
+    run.timed("evaluate")
+    run.finish()
+    if T:
+        idx = [names_all.index(n) for n in T]
+        rec.log_aligned(list(T), [scans[i].points for i in idx], list(T.values()))
+        if cfg.output.record_pair_correspondences and rec.enabled:
+            record_pairs(rec, sol, names_all)
+    return reg
+
+
+def record_pairs(rec, sol, names: list[str]) -> None:
+    """Each pair's linked points of the final tracks, in the world frame."""
+    tr = sol.tracks
+    if len(tr.link_obs) == 0:
+        return
+    a, b = tr.link_obs[:, 0], tr.link_obs[:, 1]
+    for p, (i, j) in enumerate(tr.pairs):
+        if int(i) not in sol.T_world_scan or int(j) not in sol.T_world_scan:
+            continue
+        sel = tr.link_pair == p
+        if not np.any(sel):
+            continue
+        oa, ob = a[sel], b[sel]
+        # A link may be stored either way round: put scan i's end first.
+        swap = tr.obs_scan[oa] != i
+        oa, ob = np.where(swap, ob, oa), np.where(swap, oa, ob)
+        pa = transform_points(sol.T_world_scan[int(i)], tr.coords[oa])
+        pb = transform_points(sol.T_world_scan[int(j)], tr.coords[ob])
+        w = float(tr.pair_weights[p]) if len(tr.pair_weights) > p else None
+        rec.log_pair_correspondences(names[int(i)], names[int(j)], pa, pb, w)

@@ -1,0 +1,110 @@
+"""The stages of a run that every mode shares, and the contract of a mode.
+
+A *mode* says how scans become a pair graph: :class:`UnorderedMode` (candidate pairs,
+feature RANSAC alignment, rotation search for scans left unconnected; the default) or
+the sequence mode of :mod:`mvreg.sequence` (odometry and loop closures). Everything
+else -- loading, the global stage, evaluation, the result -- is the same pipeline
+(:func:`mvreg.pipeline.register.run_pipeline`).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass, field
+from typing import Protocol
+
+import numpy as np
+
+from mvreg.globalstage.stage import MultiviewPlan, TrackPlan
+from mvreg.pairwise import (
+    PairResult,
+    PreprocessedScan,
+    align_pairs,
+    candidate_pairs,
+    derive_voxel_size,
+    preprocess_all,
+)
+from mvreg.pairwise.search import connect_unconnected
+from mvreg.pipeline.run import Run
+from mvreg.scales import Scales
+
+
+@dataclass
+class PairGraph:
+    """What a pair-graph stage produced: the pair results (accepted or not), the plan the
+    global stage follows with them, extra pair-table columns, and mode-specific data."""
+
+    results: list[PairResult]
+    plan: TrackPlan
+    columns: Callable[[PairResult], dict] | None = None
+    extra: dict = field(default_factory=dict)
+
+
+class Mode(Protocol):
+    """A kind of input: how scans are preprocessed and paired, and how the run is
+    evaluated. ``what`` names the input in messages ("registration", "a sequence")."""
+
+    what: str
+
+    def preprocess(self, run: Run, scans) -> tuple[Scales, list[PreprocessedScan]]: ...
+
+    def pair_graph(self, run: Run, scans, pre, scales: Scales) -> PairGraph: ...
+
+    def evaluate(self, run: Run, reg, pre, results, truth) -> None:
+        """Fill ``reg.overlap``, ``reg.truth_errors`` (and mode extras) in place."""
+
+
+def scales_of(voxel: float, pre: Sequence[PreprocessedScan], given: bool) -> Scales:
+    """The run's :class:`Scales` once the scans are preprocessed at ``voxel``."""
+    return Scales(
+        voxel=float(voxel),
+        fine_voxel=float(pre[0].fine_voxel_size) if pre else float(voxel),
+        noise=float(np.median([p.noise for p in pre])) if pre else 0.0,
+        voxel_source="given" if given else "derived",
+    )
+
+
+def free_space_columns(r: PairResult) -> dict:
+    return {
+        "free_space_violation": r.free_space_violation,
+        "unseen_violation": r.unseen_violation,
+    }
+
+
+class UnorderedMode:
+    """Scans in no particular order (the default of ``register``)."""
+
+    what = "registration"
+
+    def __init__(self, pair_hook=None):
+        self.pair_hook = pair_hook
+
+    def preprocess(self, run: Run, scans):
+        cfg = run.cfg.preprocess
+        voxel = derive_voxel_size(scans, cfg)
+        run.progress.stage("preprocess", len(scans))
+        pre = preprocess_all(
+            scans, voxel, cfg, run.executor.workers, progress=lambda _p: run.progress.advance()
+        )
+        return scales_of(voxel, pre, cfg.voxel_size is not None), pre
+
+    def pair_graph(self, run: Run, scans, pre, scales: Scales) -> PairGraph:
+        cfg = run.cfg
+        pairs = candidate_pairs(pre, cfg.pairs)
+        run.progress.stage("pairs", len(pairs))
+        results = align_pairs(
+            pre, pairs, cfg.align, cfg.seed, progress=lambda _r: run.progress.advance(),
+            workers=run.executor.workers,
+        )  # fmt: skip
+        results = connect_unconnected(
+            pre, results, cfg.align, cfg.search, workers=run.executor.workers
+        )
+        if self.pair_hook is not None:
+            results = self.pair_hook(pre, results)
+        run.timed("pairwise")
+        return PairGraph(results, MultiviewPlan(), columns=free_space_columns)
+
+    def evaluate(self, run: Run, reg, pre, results, truth) -> None:
+        from mvreg.pipeline.evaluate import evaluate_overlap_and_truth
+
+        evaluate_overlap_and_truth(reg, pre, truth)

@@ -8,7 +8,7 @@ import pytest
 import typer
 from typer.testing import CliRunner
 
-from data_synth.cli import synth_command
+from mvreg.cli.synth import synth_command
 from mvreg.io.poses import read_poses_json
 
 app = typer.Typer(add_completion=False, pretty_exceptions_enable=False)

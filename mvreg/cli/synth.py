@@ -1,5 +1,5 @@
-"""``mvreg synth``: the command function. The lead registers it with
-``app.command("synth")(synth_command)``; it needs nothing else from ``mvreg.cli``.
+"""``mvreg synth``: synthetic partial scans of a mesh (the library is :mod:`data_synth`).
+Registered by :mod:`mvreg.cli` as ``app.command("synth")(synth_command)``.
 
 Heavy imports (open3d, trimesh) happen inside the command so ``mvreg --help`` stays fast.
 """

@@ -1,0 +1,72 @@
+"""The mvreg command line: a thin layer over the library.
+
+Each command module maps its options onto the configuration models of :mod:`mvreg.config`
+(validated there, once) and calls the library; library code raises typed errors, and only
+:func:`mvreg.cli.common.run_guarded` turns them into one-line messages and exit codes
+(0 ok, 2 bad input, 3 scans unregistered, 4 failure). Heavy imports happen inside the
+commands, so ``mvreg --help`` is instant and ``import mvreg.cli`` loads no algorithm.
+"""
+
+from __future__ import annotations
+
+import sys
+from typing import Annotated
+
+import typer
+
+from mvreg.cli import register as _register_cmds
+from mvreg.cli import solve as _solve_cmds
+from mvreg.cli.common import STATE
+from mvreg.cli.synth import synth_command
+
+app = typer.Typer(
+    name="mvreg",
+    help="Global multiview registration of 3D scans, with certificates of optimality.",
+    no_args_is_help=True,
+    pretty_exceptions_enable=False,
+    add_completion=False,
+    rich_markup_mode="rich",
+)
+
+
+def _version(value: bool):
+    if not value:
+        return
+    import numpy
+    import open3d
+    import rerun
+    import scipy
+
+    from mvreg import __version__
+
+    typer.echo(
+        f"mvreg {__version__} (numpy {numpy.__version__}, scipy {scipy.__version__}, "
+        f"open3d {open3d.__version__}, rerun {rerun.__version__})"
+    )
+    raise typer.Exit(0)
+
+
+@app.callback()
+def main(
+    version: Annotated[
+        bool,
+        typer.Option(
+            "--version", callback=_version, is_eager=True, help="Versions (loads open3d)."
+        ),
+    ] = False,
+    debug: Annotated[bool, typer.Option("--debug", help="Show tracebacks on errors.")] = False,
+):
+    """mvreg: register many partial 3D scans into one frame, globally (REG-ADMM)."""
+    STATE["debug"] = debug
+
+
+for _sub in (_register_cmds.app, _solve_cmds.app):
+    for _cmd in _sub.registered_commands:
+        app.registered_commands.append(_cmd)
+app.command("synth", epilog="Example:  mvreg synth builtin --out scans/ --views 12 --noise 0.002")(
+    synth_command
+)
+
+
+if __name__ == "__main__":  # pragma: no cover
+    sys.exit(app())

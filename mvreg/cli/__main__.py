@@ -1,0 +1,5 @@
+"""``python -m mvreg.cli``: the mvreg command line."""
+
+from mvreg.cli import app
+
+app()

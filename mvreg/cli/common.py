@@ -1,0 +1,118 @@
+"""What every command shares: turning typed errors into one-line messages and exit codes,
+configuration from ``--config`` / ``--set`` / named options, progress bars.
+
+Exit codes (README.md): 0 ok, 2 bad input or usage, 3 some scans not registered,
+4 internal or numerical failure, 130 interrupted.
+"""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import typer
+
+STATE = {"debug": False}
+
+SET_HELP = (
+    "Any configuration value, SECTION.FIELD=VALUE (repeatable; VALUE as JSON, else text), "
+    "e.g. --set refine.rounds=2 --set align.ransac_max_iterations=8000."
+)
+
+
+def fail(exc: BaseException) -> typer.Exit:
+    """Print a one-line message for a library error; return the Exit to raise."""
+    from mvreg.errors import MvregError
+
+    if STATE["debug"]:
+        raise exc
+    code = exc.exit_code if isinstance(exc, MvregError) else 4
+    msg = str(exc) if isinstance(exc, MvregError) else f"{type(exc).__name__}: {exc}"
+    typer.echo(f"mvreg: error: {msg}", err=True)
+    return typer.Exit(code)
+
+
+def run_guarded(fn, *args, **kwargs):
+    """Call fn; turn MvregError (and, without --debug, anything else) into an exit code."""
+    from mvreg.errors import MvregError
+
+    try:
+        return fn(*args, **kwargs)
+    except typer.Exit:
+        raise
+    except MvregError as e:
+        raise fail(e) from None
+    except KeyboardInterrupt:
+        typer.echo("mvreg: interrupted", err=True)
+        raise typer.Exit(130) from None
+    except Exception as e:  # noqa: BLE001 - last resort: one line, unless --debug
+        raise fail(e) from None
+
+
+def parse_sets(items: list[str] | None) -> dict:
+    """``["refine.rounds=2", ...]`` -> ``{"refine.rounds": 2}``; values as JSON, else text."""
+    from mvreg.errors import ConfigError
+
+    out = {}
+    for item in items or []:
+        key, sep, text = item.partition("=")
+        if not sep or not key.strip():
+            raise ConfigError(f"--set {item!r}: expected SECTION.FIELD=VALUE")
+        try:
+            value = json.loads(text)
+        except ValueError:
+            value = text
+        out[key.strip()] = value
+    return out
+
+
+def config_from(path: Path | None, sets: list[str] | None, **named):
+    """The RegisterConfig: defaults < ``path`` < ``--set`` < named options (None: unset)."""
+    from mvreg.config import load_config
+
+    return load_config(path, **{**parse_sets(sets), **named})
+
+
+def check_out_file(path: Path, force: bool):
+    from mvreg.errors import OutputExistsError
+
+    if path.exists() and not force:
+        raise OutputExistsError(f"{path} exists (use --force to overwrite)")
+
+
+class RichProgress:
+    """Progress bars for the pipeline stages (the pipeline calls stage/advance/done)."""
+
+    def __init__(self):
+        from rich.progress import (
+            BarColumn,
+            MofNCompleteColumn,
+            Progress,
+            TextColumn,
+            TimeElapsedColumn,
+        )
+
+        self._p = Progress(
+            TextColumn("{task.description:>22}"),
+            BarColumn(),
+            MofNCompleteColumn(),
+            TimeElapsedColumn(),
+            transient=False,
+        )
+        self._task = None
+        self._p.start()
+
+    def stage(self, name: str, total: int | None = None) -> None:
+        if self._task is not None:
+            t = self._p.tasks[self._task]
+            self._p.update(self._task, completed=t.total or 1, total=t.total or 1)
+        self._task = self._p.add_task(name, total=total if total else 1)
+
+    def advance(self, n: int = 1) -> None:
+        if self._task is not None:
+            self._p.advance(self._task, n)
+
+    def done(self) -> None:
+        self.stage("done", 1)
+        self._p.advance(self._task, 1)
+        self._p.stop()

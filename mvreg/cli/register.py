@@ -1,0 +1,270 @@
+"""``mvreg register``, ``mvreg demo`` and ``mvreg eval``: options map onto the configuration
+(``mvreg.config``), validated there once; everything else through ``--set``."""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Annotated
+
+import typer
+
+from mvreg.cli.common import SET_HELP, RichProgress, config_from, run_guarded
+
+app = typer.Typer()
+
+
+@app.command(
+    epilog="Examples:  mvreg register scans/ --out result/ --refine 3 --seed 0\n\n"
+    "mvreg register scans/ --out result/ --set align.ransac_max_iterations=8000"
+)
+def register(
+    folder: Annotated[
+        Path, typer.Argument(help="Folder of scans (PLY, PCD, XYZ, XYZN, XYZRGB, PTS, NPY).")
+    ],
+    out: Annotated[Path, typer.Option("--out", "-o", help="Output folder.")],
+    voxel_size: Annotated[
+        float | None,
+        typer.Option(help="Feature voxel size (data units); default: derived from the data."),
+    ] = None,
+    solver: Annotated[str | None, typer.Option(help="Global solver (default reg-admm).")] = None,
+    refine: Annotated[
+        int | None, typer.Option(help="Rounds of multiview ICP refinement (default 3).")
+    ] = None,
+    seed: Annotated[int | None, typer.Option(help="Seed: same seed, same poses.")] = None,
+    workers: Annotated[
+        int | None, typer.Option(help="Threads for per-scan and per-pair work (default 2).")
+    ] = None,
+    config: Annotated[
+        Path | None, typer.Option(help="JSON/YAML config file (stage -> settings).")
+    ] = None,
+    set_: Annotated[list[str] | None, typer.Option("--set", help=SET_HELP)] = None,
+    rrd: Annotated[
+        Path | None,
+        typer.Option(help="Where to write the rerun recording (default OUT/recording.rrd)."),
+    ] = None,
+    no_rrd: Annotated[bool, typer.Option("--no-rrd", help="Do not write a recording.")] = False,
+    spawn: Annotated[bool, typer.Option(help="Open the rerun viewer (when installed).")] = False,
+    sequence: Annotated[
+        bool,
+        typer.Option(
+            "--sequence",
+            help="Scans taken one after another by a moving LiDAR: KISS-ICP odometry, "
+            "loop closures, then the global solve (timestamps from timestamps.txt or names).",
+        ),
+    ] = False,
+    force: Annotated[bool, typer.Option(help="Overwrite existing results in OUT.")] = False,
+):
+    """Register a folder of raw scans: poses, merged cloud, report and a rerun recording."""
+
+    def _run():
+        cfg = config_from(
+            config,
+            set_,
+            **{
+                "preprocess.voxel_size": voxel_size,
+                "solve.solver": solver,
+                "refine.rounds": refine,
+                "seed": seed,
+                "workers": workers,
+            },
+        )
+        code = register_folder(
+            folder, out, cfg, rrd=rrd, no_rrd=no_rrd, spawn=spawn, force=force, sequence=sequence
+        )
+        raise typer.Exit(code)
+
+    run_guarded(_run)
+
+
+def register_folder(
+    folder,
+    out,
+    cfg,
+    *,
+    rrd=None,
+    no_rrd=False,
+    spawn=False,
+    force=False,
+    progress=True,
+    truth=None,
+    sequence=False,
+):
+    """The body of `mvreg register` (also used by `mvreg demo`). Returns the exit code."""
+    from mvreg.errors import OutputExistsError
+    from mvreg.io.writers import prepare_output, residual_heatmap, write_registration
+    from mvreg.viz import make_recorder
+
+    if sequence:
+        from mvreg.sequence import register_sequence as run_register
+    else:
+        from mvreg.pipeline import register as run_register
+
+    out = prepare_output(out, force)
+    rrd_path = None if no_rrd else (rrd if rrd is not None else out / "recording.rrd")
+    if rrd is not None and rrd.exists() and not force:
+        raise OutputExistsError(f"{rrd} exists (use --force to overwrite)")
+    rec = make_recorder(rrd_path, spawn=spawn, recording_id=f"mvreg-{cfg.seed}")
+    for w in getattr(rec, "warnings", []):
+        typer.echo(f"mvreg: warning: {w}", err=True)
+    with rec:
+        reg = run_register(
+            folder, cfg, recorder=rec, progress=RichProgress() if progress else None, truth=truth
+        )
+        if reg.T_world_scan:
+            pts, res = residual_heatmap(reg)
+            rec.log_residual_heatmap(pts, res)
+        paths = write_registration(reg, out)
+    summary_table(reg)
+    typer.echo(
+        f"wrote {', '.join(str(p) for p in paths.values() if p.exists())}"
+        + (f", {rrd_path}" if rrd_path is not None else "")
+    )
+    return 3 if reg.unregistered else 0
+
+
+def summary_table(reg) -> None:
+    from rich.console import Console
+    from rich.table import Table
+
+    c = reg.solve.certificate if reg.solve is not None else None
+    t = Table(title="mvreg register", show_header=False)
+    t.add_row("scans", f"{len(reg.scan_names)} ({len(reg.T_world_scan)} registered)")
+    if reg.unregistered:
+        t.add_row("[red]unregistered[/]", ", ".join(reg.unregistered))
+    accepted = [p for p in reg.pairs if p["accepted"]]
+    bad = [p for p in accepted if p["final_weight"] == 0.0]
+    t.add_row(
+        "pairs", f"{len(reg.pairs)} tried, {len(accepted)} accepted, {len(bad)} down-weighted to 0"
+    )
+    if c is not None:
+        t.add_row("certified optimum", "yes" if c.certified else "[red]no[/]")
+    j = getattr(reg, "joint_icp", None)
+    if j:
+        moved = (
+            f"moved the certified poses by at most {j['max_rotation_change_deg']:.3f} deg, "
+            f"{j['max_point_move_voxels']:.2f} voxels"
+        )
+        t.add_row(
+            "joint point-to-plane ICP",
+            f"{j['iterations']} iterations, {moved}"
+            if j["accepted"]
+            else f"[yellow]not kept[/] (would have {moved})",
+        )
+    if reg.overlap and reg.overlap["median"] is not None:
+        t.add_row(
+            "overlap residual",
+            f"median {reg.overlap['median']:.4g}, mean {reg.overlap['mean']:.4g} (data units)",
+        )
+    if reg.truth_errors:
+        e = reg.truth_errors
+        t.add_row(
+            "vs ground truth",
+            f"rotation max {e['rotation_deg_max']:.3f} deg, "
+            f"translation max {e['translation_max']:.4g} at the frame origins, "
+            f"{e['translation_at_centroid_max']:.4g} at the scan centroids",
+        )
+    t.add_row("time", f"{reg.timings['total']:.2f} s")
+    Console(stderr=True).print(t)
+
+
+@app.command(epilog="Example:  mvreg demo --out demo_out --views 12 --seed 0")
+def demo(
+    out: Annotated[Path, typer.Option("--out", "-o", help="Folder for scans/ and result/.")] = Path(
+        "demo_out"
+    ),
+    views: Annotated[int, typer.Option(min=2, help="Number of synthetic scans.")] = 12,
+    noise: Annotated[
+        float, typer.Option(min=0.0, help="Range noise, fraction of the object diagonal.")
+    ] = 0.002,
+    seed: Annotated[
+        int, typer.Option(help="Seed of the object, views, noise and registration.")
+    ] = 0,
+    force: Annotated[bool, typer.Option(help="Overwrite an earlier demo in OUT.")] = False,
+):
+    """Synthesize the built-in object, register the scans, print errors against ground truth."""
+
+    def _run():
+        from data_synth import synthesize_scans
+        from mvreg.config import load_config
+        from mvreg.io.writers import prepare_output
+
+        scans_dir, result_dir = out / "scans", out / "result"
+        prepare_output(result_dir, force)  # refuse before spending time
+        typer.echo(f"synthesizing {views} scans of the built-in object -> {scans_dir}")
+        synth = synthesize_scans(
+            "builtin",
+            scans_dir,
+            views=views,
+            noise=noise,
+            seed=seed,
+            random_frames=True,
+            force=force,
+        )
+        code = register_folder(scans_dir, result_dir, load_config(seed=seed), force=force)
+        import json
+
+        report = json.loads((result_dir / "report.json").read_text())
+        e = report["ground_truth_errors"]
+        diag = synth.object_diagonal
+        typer.echo(
+            f"errors vs ground truth: rotation median {e['rotation_deg_median']:.4f} / max "
+            f"{e['rotation_deg_max']:.4f} deg; translation median "
+            f"{e['translation_median'] / diag * 100:.4f}% / max "
+            f"{e['translation_max'] / diag * 100:.4f}% of the object diagonal at the frame "
+            f"origins, max {e['translation_at_centroid_max'] / diag * 100:.4f}% at the scan "
+            "centroids; "
+            f"certified: {report['certificate']['certified']}"
+            + (
+                f" (then moved at most {j['max_rotation_change_deg']:.4f} deg by joint ICP)"
+                if (j := report.get("joint_icp")) and j["accepted"]
+                else ""
+            )
+        )
+        typer.echo(f"open the recording with:  rerun {result_dir / 'recording.rrd'}")
+        raise typer.Exit(code)
+
+    run_guarded(_run)
+
+
+@app.command("eval", epilog="Example:  mvreg eval result/ --truth scans/ground_truth.json")
+def eval_cmd(
+    out: Annotated[
+        Path, typer.Argument(help="Output folder of `mvreg register` (or a poses.json).")
+    ],
+    truth: Annotated[Path, typer.Option(help="Ground-truth poses (mvreg.poses/1 JSON).")],
+):
+    """Errors of a registration against ground-truth poses (gauge-free)."""
+
+    def _run():
+        import numpy as np
+        from rich.console import Console
+        from rich.table import Table
+
+        from mvreg.errors import InputError
+        from mvreg.io.poses import read_poses_json
+        from mvreg.metrics import pose_errors
+
+        poses_path = out / "poses.json" if out.is_dir() else out
+        est = read_poses_json(poses_path)
+        tru = read_poses_json(truth)
+        common = [n for n in est if n in tru]
+        if len(common) < 2:
+            raise InputError(f"{truth}: fewer than 2 scans in common with {poses_path}")
+        err = pose_errors(np.stack([est[n] for n in common]), np.stack([tru[n] for n in common]))
+        t = Table(title=f"{poses_path} vs {truth}")
+        t.add_column("scan")
+        t.add_column("rotation error (deg)", justify="right")
+        t.add_column("translation error", justify="right")
+        for n, r, tr in zip(common, err.rotation_deg, err.translation, strict=True):
+            t.add_row(n, f"{r:.4f}", f"{tr:.6g}")
+        Console().print(t)
+        s = err.summary()
+        typer.echo(
+            f"rotation median {s['rotation_deg_median']:.4f} max {s['rotation_deg_max']:.4f} deg; "
+            f"translation median {s['translation_median']:.6g} max {s['translation_max']:.6g}"
+        )
+        missing = [n for n in tru if n not in est]
+        if missing:
+            typer.echo(f"not registered: {', '.join(missing)}", err=True)
+
+    run_guarded(_run)

@@ -11,16 +11,10 @@ class RefineConfig(BaseModel):
     """Multiview ICP rounds (stage 7): correspondences between all overlapping scans
     recomputed with the current global poses, then a warm-started global re-solve.
 
-    Nearest-neighbour pairs under the current poses pull only at the scale of the point
-    spacing and barely at all along a plane (both scans' samples of a face look alike
-    wherever they slide), so on CAD-like parts the rounds stalled near the start
-    (``correspondences="nearest"``). By default each pair is first refined by
-    point-to-plane ICP, which does move along planes as far as the other faces require,
-    and its correspondences are taken under that refined pose.
-
-    After the rounds, a joint point-to-plane ICP moves all poses together
-    (``joint_icp_*``, :mod:`mvreg.joint_icp`): each pair then constrains only the
-    directions its overlap does, which the rounds' point-to-point tracks cannot express.
+    By default each pair is first refined by point-to-plane ICP and its correspondences
+    are taken under that refined pose (``correspondences="pairwise-icp"``). After the
+    rounds, a joint point-to-plane ICP moves all poses together (``joint_icp_*``,
+    :mod:`mvreg.globalstage.joint_icp`). Why: docs/design/globalstage.md.
     """
 
     model_config = ConfigDict(extra="forbid")

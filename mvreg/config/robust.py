@@ -12,12 +12,8 @@ class RobustConfig(BaseModel):
     global poses; its weight is w = 1 / (1 + (r / c)^2)^2 (Geman-McClure-like), with
     c = ``scale_factor`` times the median pair residual (but at least ``min_scale_voxels``
     feature voxels); weights below ``zero_weight`` become 0 (the pair is listed as bad).
-
-    A wrong pair links the points that happen to lie close under its wrong pose, near the
-    centre of its error, so its residual under the right poses stays modest and its weight
-    can settle above ``zero_weight`` (an injected 12-degree error on the teapot: weight
-    0.33). The final poses after refinement no longer use the pairs' own poses at all, so
-    each accepted pair is then compared with them (``final_disagreement_voxels``).
+    After refinement each accepted pair is compared with the final poses
+    (``final_disagreement_voxels``). Why: docs/design/globalstage.md.
     """
 
     model_config = ConfigDict(extra="forbid")

@@ -51,14 +51,8 @@ def pose_tracks(
     spread, each become a node observed by scan j at its own coordinates ``p`` and by
     scan i at ``T_i_j p``. Every node belongs to one pair, so the patch problem is a pose
     graph whose edges weigh each pair by where the two scans overlap; its solution
-    honours every pair's ICP (point-to-plane) alignment as far as the loops allow.
-
-    Why not mutual nearest neighbours (:func:`~mvreg.pairwise.build_tracks`): on sparse
-    range scans two scans never sample the same physical points -- their rings cut the
-    ground and walls along different curves, ~0.1 voxel apart and biased in a direction
-    set by the motion -- so point-to-point links pull scans by the sampling pattern
-    (measured on a 100-scan loop of 10,000-point scans: 0.56 deg median rotation error
-    with nearest neighbours and ``register``'s multiview ICP, 0.045 deg with these).
+    honours every pair's ICP (point-to-plane) alignment as far as the loops allow. Why
+    not mutual nearest neighbours: docs/design/sequence.md.
     """
     m = len(pre)
     chunks: list[list[np.ndarray]] = [[] for _ in range(m)]
@@ -109,11 +103,8 @@ def refine_pose_graph(
     fine point-to-plane ICP started from the global poses (``cfg.align`` distances);
     if still accepted it replaces the pair, and the problem is re-solved warm-started with
     weights from the residuals (``cfg.robust``). At most ``cfg.refine.rounds`` rounds,
-    each pair re-aligned at most once; stops when no new pair disagrees. Pairs that
-    agree are not re-aligned: ICP restarted from a nearby pose only moves within its
-    stopping tolerance (measured: re-aligning every pair in every round, with the
-    shrinking distances of ``register``'s refinement, made a 100-scan loop worse, 0.045
-    -> 0.064 deg median rotation error).
+    each pair re-aligned at most once; stops when no new pair disagrees; pairs that agree
+    are not re-aligned (docs/design/sequence.md).
     ``cfg.refine.distance_voxels`` is not used. Returns the solution, its tracks, their
     (P,) pair weights, the pair results (re-aligned ones replaced) and a log per round.
     """

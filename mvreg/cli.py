@@ -129,22 +129,22 @@ def solve(
     """Solve a patch problem: rotations, translations and a certificate of optimality."""
 
     def _run():
+        from mvreg.config.solve import solve_config
         from mvreg.io.poses import write_poses_json
         from mvreg.solver import load_problem
         from mvreg.solver import solve as solve_problem
 
         _check_out_file(out, force)
         prob = load_problem(problem)
-        res = solve_problem(
-            prob,
-            solver,
+        cfg = solve_config(
+            solver=solver,
             method=method,
             rho=rho,
             max_iter=max_iter,
             tol=tol,
             allow_reflections=allow_reflections,
-            seed=seed,
         )
+        res = solve_problem(prob, cfg, seed=seed)
         write_poses_json(
             out,
             res.poses(),

@@ -38,8 +38,7 @@ from mvreg.pairwise import PreprocessedScan, Tracks, mutual_correspondences
 from mvreg.pairwise._threads import single_threaded_blas
 from mvreg.pairwise.align import icp_point_to_plane
 from mvreg.pairwise.tracks import tracks_from_correspondences
-from mvreg.solver import SolveResult, solve
-from mvreg.solver.reg_admm import IterationRecord
+from mvreg.solver import IterationRecord, SolveResult, solve
 
 
 @dataclass
@@ -66,18 +65,7 @@ def solve_tracks(
     R0 = "spectral"
     if init is not None and all(s in init for s in scans):
         R0 = np.stack([init[s][:3, :3] for s in scans])
-    s = cfg.solve
-    res = solve(
-        problem,
-        s.solver,
-        method=s.method,
-        rho=s.rho,
-        max_iter=s.max_iter,
-        allow_reflections=s.allow_reflections,
-        init=R0,
-        seed=cfg.seed,
-        callback=callback,
-    )
+    res = solve(problem, cfg.solve, init=R0, seed=cfg.seed, callback=callback)
     if callback is not None:  # one point per global solve, after its ADMM iterations
         c = res.certificate
         callback(

@@ -60,7 +60,9 @@ import numpy as np
 import scipy.linalg as sla
 
 from mvreg.errors import ConfigError
+from mvreg.solver.base import IterationRecord, SolverContext, SolverRun
 from mvreg.solver.blocks import round_to_rotations, sym, x_from_rotations
+from mvreg.solver.certificate import DEFAULT_GAP_TOL, certify
 
 C_ADMM_MAX_N = 1500
 RANK_RTOL = 1e-3
@@ -79,7 +81,7 @@ class CAdmmResult:
     upper: float  # Tr(C G) at the feasible G (normalized units)
     lower: float  # dual lower bound (normalized units)
     rho_final: float
-    history: list = field(default_factory=list)
+    history: list[IterationRecord] = field(default_factory=list)
 
 
 def _bd(a: np.ndarray, m: int, d: int) -> np.ndarray:
@@ -151,8 +153,13 @@ def c_admm(
     callback=None,
     full_eig: bool = False,
     certify_fn=None,
+    objective_scale: float = 1.0,
 ) -> CAdmmResult:
-    """Run C-ADMM on a dense normalized C (n, n). See the module docstring."""
+    """Run C-ADMM on a dense normalized C (n, n). See the module docstring.
+
+    History and callback: one IterationRecord per iteration, objective (and the bounds in
+    ``extra``) in the units of C times ``objective_scale``.
+    """
     n = C.shape[0]
     m = n // d
     check_size(n)
@@ -201,21 +208,23 @@ def c_admm(
         dr = dh / max(float(np.linalg.norm(H)), 1e-300)
         lam = lam + rho_v * resid
         H = H_new
-        rec = {
-            "iteration": k,
-            "objective": float(np.sum(C * G)),
-            "primal_residual": pr,
-            "dual_residual": dr,
-            "rho": rho_v,
-            "positive_eigenvalues": int(np.sum(w > rank_rtol * max(w[-1], 1e-300)))
-            if w.size
-            else 0,
-        }
+        rec = IterationRecord(
+            k,
+            float(np.sum(C * G)) * objective_scale,
+            primal_residual=pr,
+            dual_residual=dr,
+            rho=rho_v,
+            extra={
+                "positive_eigenvalues": int(np.sum(w > rank_rtol * max(w[-1], 1e-300)))
+                if w.size
+                else 0
+            },
+        )
         if pr <= tol and dr <= tol:
             converged, stopped_by = True, "residuals"
         elif gap_every and k % gap_every == 0:
             upper, lower, Gf = _bounds(C, G, lam, m, d, lam_max)
-            rec.update(upper=upper, lower=lower)
+            rec.extra.update(upper=upper * objective_scale, lower=lower * objective_scale)
             if certify_fn is None and upper - lower <= tol * max(upper, 1e-12 * lam_max * n):
                 converged, stopped_by = True, "duality_gap"
             elif certify_fn is not None and pr <= 100.0 * tol:
@@ -276,42 +285,43 @@ def c_admm(
     )
 
 
-def run_c_admm(op, R0: np.ndarray, ctx):
-    """Registry entry (GENERIC_SOLVERS["c-admm"]): C-ADMM on op.dense(), rounded rotations."""
-    from mvreg.solver.solvers import GenericRun
-
+def run(ctx: SolverContext) -> SolverRun:
+    """Registry entry "c-admm": C-ADMM on the dense C from ctx.start, rounded rotations."""
+    op, o = ctx.operator, ctx.options
     d, n, m = op.d, op.n, op.M
     check_size(n)  # before forming anything dense
     t0 = time.perf_counter()
     C = op.dense()
     lam_max = float(ctx.spectrum.largest)
     lam_d1 = float(ctx.spectrum.smallest[min(d, n - 1)])
-    from mvreg.solver.certificate import DEFAULT_GAP_TOL, certify
 
     def certify_fn(R):
         return certify(op, R, lam_max, True, DEFAULT_GAP_TOL, ctx.seed).certified
 
+    s2 = op.norm.scale**2
     res = c_admm(
         C,
         d,
-        R0,
+        ctx.start,
         certify_fn=certify_fn,
-        rho=ctx.rho,
+        rho=o.rho,
         lam_d1=lam_d1,
         lam_max=lam_max,
-        max_iter=ctx.max_iter,
-        tol=ctx.tol,
+        max_iter=o.max_iter,
+        tol=o.tol,
         allow_reflections=ctx.allow_reflections,
+        rank_rtol=o.rank_rtol,
+        gap_every=o.gap_every,
+        balance_every=o.balance_every,
+        balance_until=o.balance_until,
+        balance=o.balance,
+        balance_ratio=o.balance_ratio,
         callback=ctx.callback,
+        full_eig=o.full_eig,
+        objective_scale=s2,
     )
-    s2 = op.norm.scale**2
-    for rec in res.history:
-        rec["objective"] *= s2
-        for key in ("upper", "lower"):
-            if key in rec:
-                rec[key] *= s2
     top = res.eigenvalues[: min(n, d + 3)] / m
-    return GenericRun(
+    return SolverRun(
         rotations=res.rotations,
         iterations=res.iterations,
         converged=res.converged,
@@ -319,7 +329,7 @@ def run_c_admm(op, R0: np.ndarray, ctx):
         stats={
             "rank": res.rank,
             "tight": res.rank == d,
-            "rank_rtol": RANK_RTOL,
+            "rank_rtol": o.rank_rtol,
             "eigenvalues_over_M": [float(x) for x in top],
             "sdp_objective": res.upper * s2,
             "sdp_lower_bound": res.lower * s2,

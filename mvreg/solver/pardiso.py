@@ -18,6 +18,8 @@ import glob
 import os
 import site
 import sys
+from collections.abc import Iterator
+from contextlib import contextmanager
 from ctypes.util import find_library
 
 import numpy as np
@@ -76,6 +78,18 @@ def _load() -> ctypes.CDLL | None:
 def available() -> bool:
     """Whether MKL PARDISO can be loaded on this machine."""
     return _load() is not None
+
+
+@contextmanager
+def disabled() -> Iterator[None]:
+    """Within the block PARDISO counts as unavailable (the SuperLU / AMG fallbacks run)."""
+    global _LIB, _TRIED
+    saved = _LIB, _TRIED
+    _LIB, _TRIED = None, True
+    try:
+        yield
+    finally:
+        _LIB, _TRIED = saved
 
 
 class PardisoFactor:

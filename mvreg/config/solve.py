@@ -8,7 +8,7 @@ read as ``_`` (``solve.reg_admm.rho``, ``solve.gpm.max_iter``, ...).
 The shared keys ``rho``, ``max_iter``, ``tol`` and ``polish`` may also be given at the top
 of the section (``solve.max_iter=50``, ``solve(problem, rho=5.0)``): they are copied into
 every solver section that has that field, overriding its value there. None means "not
-given". After validation they live only in the sections.
+given". After validation they live only in the sections. Design notes: docs/design/solver.md.
 """
 
 from __future__ import annotations

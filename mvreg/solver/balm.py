@@ -27,8 +27,7 @@ mu ||Q_new - Q_old||_F / (lambda_max sqrt(n)) <= inner_tol, with inner_tol = max
 
 with two safeguards added to Algorithm 3.1: a consensus residual already below tol counts
 as sufficient decrease (no penalty increase), and mu stops growing at mu_max = 10
-lambda_max(C) (multiplier updates only from there on). Without them mu grew without bound
-once X = Q to machine precision and the Q-updates (steps ~1/mu) stalled.
+lambda_max(C) (multiplier updates only from there on); why: docs/design/solver.md.
 
 Paper 002 Theorem 2: with bounded multipliers every limit point satisfies the first-order
 conditions, i.e. Q is a KKT point of O-REG (paper 000 Lemma 1).
@@ -50,7 +49,7 @@ dual_residual the KKT residual of Q; rho the penalty mu; extra: kkt_residual, mu
 Accuracy: the certificate (solve()) bounds the suboptimality by ~||grad||^2 / mu, so on
 noisy data a KKT residual of ~1e-6 (what tol = 1e-6 gives) is often too inexact to be
 certified although the point is the global optimum; tol ~1e-9 (used in the benchmarks) or
-``solve(..., polish=True)`` gives certifiable output.
+``solve(..., polish=True)`` gives certifiable output (docs/design/solver.md).
 """
 
 from __future__ import annotations

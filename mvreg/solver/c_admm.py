@@ -12,17 +12,16 @@ Iteration (the same augmented Lagrangian as REG-ADMM, eq. 6; only the G-update d
 Dense only: one dense symmetric eigendecomposition of an Md x Md matrix per iteration,
 O((Md)^3) time and O((Md)^2) memory. Pi_PSD needs exactly the eigenpairs with positive
 eigenvalues (the negative ones are clipped to 0), so by default LAPACK syevr is asked for
-the eigenvalues in (0, inf) only: the same projection as a full decomposition, 2-4x faster
+the eigenvalues in (0, inf) only: the same projection as a full decomposition, and faster
 (``full_eig=True`` computes all of them). Size limit: ``M d <= C_ADMM_MAX_N`` (1500);
-larger problems are refused with a ConfigError. At M d = 1500 one iteration takes ~0.4 s
-on one core and C-ADMM typically needs 300-1500 iterations (docs/benchmarks/solvers.md).
+larger problems are refused with a ConfigError.
 
 Start: H0 = G0 = O0^T O0 from the initial rotations (spectral by default) and the dual
 Lambda0 = -sym(bd(C G0)) (paper 000 Prop. 2's dual at G0).
 
 rho: "auto" starts from sqrt(lambda_{d+1}(C) lambda_max(C)) / M (C's scale per unit
-eigenvalue of G, G's eigenvalues being ~M; measured on synthetic problems to need fewer
-iterations than lambda_{d+1}/M or lambda_max/M across noise levels) and is then balanced
+eigenvalue of G, G's eigenvalues being ~M; why this value: docs/design/solver.md) and is
+then balanced
 during the first ``balance_until`` (200) iterations (Boyd et al. 2011, Sec. 3.4.1): doubled
 when the primal residual exceeds 10x the dual one, halved in the opposite case, at most
 every ``balance_every`` (20) iterations. Balancing is then frozen, so the iteration is
@@ -35,19 +34,23 @@ G' = D^{-1/2} G D^{-1/2} (D = bd(G)) gives the upper bound Tr(C G'), and the dua
 the lower bound -Tr(Lambda) + Md lambda_min(C + Lambda). Called directly (``c_admm``), the
 run also stops when (upper - lower) <= tol * max(upper, 1e-12 lambda_max Md).
 
-Through solve() (``run_c_admm``) the duality-gap exit is replaced by a certificate exit,
-checked at the same iterations once the primal residual is below 100 tol: the top-d
-eigenvectors of G' are rounded to rotations and passed to the global-optimality
+Through solve() (``run``, the registry entry) the duality-gap exit is replaced by a
+certificate exit, checked at the same iterations once the primal residual is below 100 tol:
+the top-d eigenvectors of G' are rounded to rotations and passed to the global-optimality
 certificate (certificate.py, default gap tolerance); if they are certified, O^T O is the
 optimum of C-SDP (rank d, the relaxation is tight) up to that tolerance, and C-ADMM stops
-("stopped_by": "certificate"), typically well before both residuals reach tol. (A C-SDP
-gap below tol alone did not make the rounded rotations accurate enough for the certificate
-that solve() reports.)
+("stopped_by": "certificate"), typically well before both residuals reach tol.
 
 Rank (tightness of the relaxation, paper 000 Fig. 3): the number of eigenvalues of the
 final G' above ``rank_rtol`` (1e-3) times its largest eigenvalue (~M). rank == d means the
 relaxation is tight: G' = O^T O is the global optimum of REG-SDP too. Rounding: the top-d
 eigenvectors of G' scaled by sqrt(eigenvalue), each d x d block projected onto SO(d)/O(d).
+
+Options: ``solve.c_admm`` (CAdmmOptions: max_iter, tol, polish, rho, gap_every,
+balance_every, balance_until, balance, balance_ratio, full_eig, rank_rtol). Iteration
+records: objective Tr(C G) in the problem's units, the primal and dual residuals above,
+rho; extra: positive_eigenvalues, and upper / lower (problem units) where the gap was
+computed. Design notes and measurements: docs/design/solver.md.
 """
 
 from __future__ import annotations

@@ -29,7 +29,7 @@ fixed_point_gap.
 Accuracy: the certificate (solve()) bounds the suboptimality by ~||grad||^2 / mu, so on
 noisy data a KKT residual of ~1e-6 (what tol = 1e-6 gives) is often too inexact to be
 certified although the point is the global optimum; tol ~1e-9 (used in the benchmarks) or
-``solve(..., polish=True)`` gives certifiable output.
+``solve(..., polish=True)`` gives certifiable output (docs/design/solver.md).
 """
 
 from __future__ import annotations

@@ -7,15 +7,26 @@
 The state is U (n, d), s (d) with G = U diag(s) U^T and the M dual blocks: memory is
 linear in M. Since H = G - bd(G) + I, A = U diag(s) U^T + D - C/rho with the block
 diagonal D = I - bd(G) - Lambda/rho. The dense variant forms A and uses an exact
-eigensolver; the matrix-free one runs LOBPCG on the operator, warm started from U.
+eigensolver; the matrix-free one runs ``lobpcg_steps`` LOBPCG steps on the operator per
+iteration, warm started from U.
 
 rho = "auto": Theorem 4's value lambda_{d+1}(C) / (2 M sqrt(d)) (feasible H0, Lambda0 = 0),
-doubled whenever the primal residual stops decreasing (the non-attenuating oscillation of
-paper section 2.6), up to lambda_max(C). Every change is recorded with its reason.
+doubled whenever the primal residual has not fallen below 0.99 x its best for ``stall_window``
+iterations (the non-attenuating oscillation of paper section 2.6), up to lambda_max(C).
+Every change is recorded with its reason (``SolverRun.rho_history``). A number fixes rho.
 
 Stopping: the relative primal residual ||bd(G) - I||_F / sqrt(Md) and the relative dual
-residual ||H^{k+1} - H^k||_F / ||H^k||_F both below ``tol``; or, at checkpoints, when the
-rounded iterate, Newton-polished to a KKT point, is certified globally optimal.
+residual ||H^{k+1} - H^k||_F / ||H^k||_F both below ``tol``, or ``max_iter``; or, with
+``polish`` (the default), at a checkpoint (the start, then iterations 1, 2, 5, 10, 20, 50,
+..., and max_iter) when the rounded iterate, Newton-polished to a KKT point, is certified
+globally optimal. Without ``polish`` the run is plain eq. (7) (paper experiments).
+
+Registry entry ``run(ctx)`` (see mvreg.solver.base): options ``solve.reg_admm``
+(RegAdmmOptions: rho, max_iter, tol, polish, lobpcg_steps, stall_window). Returns checked
+rotations: the best polished point (lowest cost) over the checkpoints and the last iterate,
+with its certificate; or, without ``polish``, the rounded last iterate, certified.
+Iteration records: objective Tr(C G) in the problem's units, the relative primal and dual
+residuals, rho. Design notes: docs/design/solver.md.
 """
 
 from __future__ import annotations
@@ -268,7 +279,7 @@ def run(ctx: SolverContext) -> SolverRun:
     state = state_from_rotations(ctx.start, rho=rho0)
     best = BestPoint(ctx)
     t0 = time.perf_counter()
-    # Checkpoint 0: the start itself (see docs/design/solver.md).
+    # Checkpoint 0: the start itself; REG-ADMM iterates only when it is not certified.
     if o.polish and best.check(0, state):
         admm = AdmmRun(state=state)
     else:

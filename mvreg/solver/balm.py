@@ -61,7 +61,7 @@ import numpy as np
 import scipy.linalg as sla
 
 from mvreg.solver.base import IterationRecord, SolverContext, SolverRun
-from mvreg.solver.blocks import block_apply, project_blocks, round_to_rotations, x_from_rotations
+from mvreg.solver.blocks import block_apply, feasible_x, project_blocks, rotations_from_x
 from mvreg.solver.certificate import multipliers
 
 
@@ -170,7 +170,7 @@ def run(ctx: SolverContext) -> SolverRun:
     mu_max = o.mu_max_factor * lam_max
     inner_tol = o.tol if o.inner_tol is None else o.inner_tol
     xs = _XSolver(op, ctx.dense, o.cg_rtol, o.cg_maxiter)
-    Q = x_from_rotations(round_to_rotations(x_from_rotations(ctx.start), d, ctx.allow_reflections))
+    Q = feasible_x(ctx.start, d, ctx.allow_reflections)
     X = Q.copy()
     Y = -2.0 * op.matvec(Q)
     eps_best = math.inf
@@ -215,15 +215,12 @@ def run(ctx: SolverContext) -> SolverRun:
             rho=mu,
             extra={"kkt_residual": kkt, "mu": mu, "update": action, "sweeps": sweeps},
         )
-        history.append(rec)
-        if ctx.callback is not None:
-            ctx.callback(rec)
+        ctx.emit(rec, history)
         if primal <= o.tol and kkt <= o.tol:
             converged = True
             break
-    R = Q.reshape(-1, d, d).transpose(0, 2, 1)
     return SolverRun(
-        rotations=np.ascontiguousarray(R),
+        rotations=np.ascontiguousarray(rotations_from_x(Q, d)),
         iterations=k,
         converged=converged,
         history=history,

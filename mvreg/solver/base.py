@@ -94,6 +94,12 @@ class SolverContext:
     certify: bool = True  # solve() reports a certificate (solvers that certify honour it)
     gap_tol: float = 1e-6  # certified when the relative suboptimality bound is below this
 
+    def emit(self, rec: IterationRecord, history: list[IterationRecord]) -> None:
+        """Append ``rec`` to ``history`` and hand it to the callback (if any)."""
+        history.append(rec)
+        if self.callback is not None:
+            self.callback(rec)
+
 
 @dataclass
 class SolverRun:

@@ -39,6 +39,12 @@ def round_to_rotations(X: np.ndarray, d: int, allow_reflections: bool = False) -
     return xi.transpose(0, 2, 1)
 
 
+def feasible_x(R: np.ndarray, d: int, allow_reflections: bool = False) -> np.ndarray:
+    """X = O^T (n, d) on the constraint set from any (M, d, d) start: blocks rounded to
+    SO(d) / O(d) first (see round_to_rotations)."""
+    return x_from_rotations(round_to_rotations(x_from_rotations(R), d, allow_reflections))
+
+
 def project_blocks(Y: np.ndarray, d: int, allow_reflections: bool) -> tuple[np.ndarray, float]:
     """Blockwise X_i = argmax Tr(Q^T Y_i) over O(d) / SO(d) for Y (n, d), and the attained
     sum_i max Tr(Q^T Y_i). Q = U V^T from the SVD Y_i = U S V^T; for SO(d) the last

@@ -40,7 +40,7 @@ import time
 import numpy as np
 
 from mvreg.solver.base import IterationRecord, SolverContext, SolverRun
-from mvreg.solver.blocks import project_blocks, round_to_rotations, x_from_rotations
+from mvreg.solver.blocks import feasible_x, project_blocks, rotations_from_x
 
 
 def run(ctx: SolverContext) -> SolverRun:
@@ -51,7 +51,7 @@ def run(ctx: SolverContext) -> SolverRun:
     s2 = op.norm.scale**2
     scale = alpha * n  # f in [0, alpha n]
     # Start exactly on the constraint set (R0 may come from anywhere).
-    X = x_from_rotations(round_to_rotations(x_from_rotations(R0), d, ctx.allow_reflections))
+    X = feasible_x(R0, d, ctx.allow_reflections)
     CX = op.matvec(X)
     f = float(np.sum(X * CX))
     history = []
@@ -78,15 +78,12 @@ def run(ctx: SolverContext) -> SolverRun:
             dual_residual=change,
             extra={"relative_decrease": dec, "block_change": change, "fixed_point_gap": fp_gap},
         )
-        history.append(rec)
-        if ctx.callback is not None:
-            ctx.callback(rec)
+        ctx.emit(rec, history)
         if abs(dec) <= opts.tol and change <= opts.tol:
             converged = True
             break
-    R = X.reshape(-1, d, d).transpose(0, 2, 1)
     return SolverRun(
-        rotations=np.ascontiguousarray(R),
+        rotations=np.ascontiguousarray(rotations_from_x(X, d)),
         iterations=k,
         converged=converged,
         history=history,

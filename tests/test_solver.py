@@ -244,6 +244,21 @@ def test_registry_matches_config_names_and_options():
         assert cfg.options(name) is getattr(cfg, entry.options_field)
 
 
+def test_solver_base_and_solve_config_import_nothing_of_the_algorithms():
+    import ast
+    from pathlib import Path
+
+    import mvreg
+
+    root = Path(mvreg.__file__).parent
+    allowed = {"solver/base.py": set(), "config/solve.py": {"mvreg.errors"}}
+    for rel, ok in allowed.items():
+        tree = ast.parse((root / rel).read_text())
+        found = {a.name for n in ast.walk(tree) if isinstance(n, ast.Import) for a in n.names}
+        found |= {n.module for n in ast.walk(tree) if isinstance(n, ast.ImportFrom) and n.module}
+        assert {m for m in found if m.split(".")[0] == "mvreg"} <= ok, rel
+
+
 def test_shared_keys_fill_every_solver_section():
     from mvreg.config import load_config
     from mvreg.config.solve import SolveConfig

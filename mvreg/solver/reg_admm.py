@@ -186,7 +186,7 @@ def rotations_from_state(state: AdmmState, d: int, allow_reflections: bool) -> n
     return round_to_rotations(state.U * np.sqrt(np.maximum(state.s, 0.0)), d, allow_reflections)
 
 
-def checkpoints(max_iter: int) -> set[int]:
+def _checkpoints(max_iter: int) -> set[int]:
     """Iterations after which the rounded iterate is polished and certified: 1, 2, 5, 10, ..."""
     pts, k = set(), 1
     while k <= max_iter:
@@ -198,7 +198,7 @@ def checkpoints(max_iter: int) -> set[int]:
     return pts
 
 
-class BestPoint:
+class _BestPoint:
     """The best Newton-polished rounded iterate seen so far and its certificate.
 
     ``check(k, state)`` polishes the rounded iterate; if that reaches a lower cost than
@@ -247,20 +247,15 @@ class BestPoint:
         self.R, self.f, self.cert, self.polish, self.at = Rp, pst.objective, cert, pst, k
         return self.certified
 
-    def finish(self, run: AdmmRun, polish_steps: bool) -> None:
+    def finish(self, run: AdmmRun, polishing: bool) -> None:
         """After the iterations: polish the last iterate (when polishing) and certify the
         best point unless a checkpoint already did."""
         R_final = rotations_from_state(run.state, self.ctx.operator.d, self.ctx.allow_reflections)
-        if polish_steps:
+        if polishing:
             Rp, pst = self._polish(R_final)
             if pst.objective < self.f:
-                self.R, self.f, self.polish, self.at, self.cert = (
-                    Rp,
-                    pst.objective,
-                    pst,
-                    run.iterations,
-                    None,
-                )
+                self.R, self.f, self.polish, self.at = Rp, pst.objective, pst, run.iterations
+                self.cert = None
         elif self.R is None:
             self.R, self.at = R_final, run.iterations
         if self.R is R_final or self.cert is None:
@@ -277,7 +272,7 @@ def run(ctx: SolverContext) -> SolverRun:
     lam_max = ctx.spectrum.largest
     rho0 = theorem4_rho(ctx.spectrum.lambda_d_plus_1(d), m, d) if o.rho == "auto" else float(o.rho)
     state = state_from_rotations(ctx.start, rho=rho0)
-    best = BestPoint(ctx)
+    best = _BestPoint(ctx)
     t0 = time.perf_counter()
     # Checkpoint 0: the start itself; REG-ADMM iterates only when it is not certified.
     if o.polish and best.check(0, state):
@@ -292,7 +287,7 @@ def run(ctx: SolverContext) -> SolverRun:
             rho_mode="auto" if o.rho == "auto" else "fixed",
             rho_max=max(lam_max, rho0),
             checkpoint=best.check if o.polish else None,
-            checkpoints=checkpoints(o.max_iter) if o.polish else None,
+            checkpoints=_checkpoints(o.max_iter) if o.polish else None,
             callback=ctx.callback,
             lobpcg_steps=o.lobpcg_steps,
             stall_window=o.stall_window,

@@ -150,6 +150,11 @@ def _section(name: str) -> str:
 def solve_config(config: SolveConfig | None = None, **overrides) -> SolveConfig:
     """``config`` (default: defaults) with ``overrides`` (SolveConfig fields, or the shared
     keys above) applied and validated. Raises ConfigError naming the bad field."""
+    if config is not None and not isinstance(config, SolveConfig):
+        raise TypeError(
+            f"config must be a SolveConfig, got {type(config).__name__} (pass the solver "
+            "as solver=...)"
+        )
     if not overrides:
         return config if config is not None else SolveConfig()
     data = config.model_dump() if config is not None else {}

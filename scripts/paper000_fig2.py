@@ -4,7 +4,7 @@
 Setup of the paper (Sec. 1.4): d = 2, a network of 10 nodes, 3 patches that each hold all 10
 nodes, every patch's local frame a random rotation of the global one, iid Gaussian noise of
 variance sigma^2 on the local coordinates. REG-ADMM (eq. 7) is run from a given H0 with
-Lambda0 = 0 and a fixed rho, without Newton polish (``solve(..., polish_steps=False)``), and
+Lambda0 = 0 and a fixed rho, without Newton polish (``solve(..., polish=False)``), and
 Tr(C G^k) is plotted against k.
 
 Noise levels: 0 (clean), "low" and "high" in the paper's sense (Sec. 1.5): low = the convex
@@ -121,7 +121,7 @@ def run(problem, rho, H0, max_iter):
     res = solve(
         problem,
         solver="reg-admm",
-        polish_steps=False,
+        polish=False,
         rho=rho,
         init=H0,
         max_iter=max_iter,
@@ -228,7 +228,7 @@ def main(argv=None) -> int:
                 r = solve(
                     clean,
                     solver="reg-admm",
-                    polish_steps=False,
+                    polish=False,
                     rho=rho,
                     init=O0,
                     max_iter=max_iter,
@@ -278,7 +278,7 @@ def main(argv=None) -> int:
         "Setup: d = 2, 10 nodes uniform in the unit square, 3 patches each holding all 10 "
         "nodes, each patch frame a random rotation of the global one, iid Gaussian noise of the "
         "given variance on the local coordinates. REG-ADMM eq. (7) from H0 = O0^T O0, "
-        "Lambda0 = 0, fixed rho, `solve(..., polish_steps=False, tol=1e-10, "
+        "Lambda0 = 0, fixed rho, `solve(..., polish=False, tol=1e-10, "
         f"max_iter={max_iter})`. O0: random orthogonal blocks, block 2 a reflection "
         f"(init seed {args.init_seed}). Noisy instances: first seed whose C-SDP optimum "
         "(c-admm, tol 1e-10) has rank d (low) / > d (high). rho values are in mvreg's "

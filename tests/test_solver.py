@@ -114,7 +114,7 @@ def test_certificate_false_for_non_optimal_stationary_point(dense):
 
 def test_admm_fixed_points_are_kkt_points():
     problem, _ = make_problem(20, d=3, noise=0.005, seed=4, graph="complete")
-    res = solve(problem, polish_steps=False, max_iter=3000, rho=5.0, tol=1e-9)
+    res = solve(problem, polish=False, max_iter=3000, rho=5.0, tol=1e-9)
     assert res.converged and res.stats["stopped_by"] == "residuals"
     assert res.certificate.kkt_residual < 1e-6
     # [C G]_ii symmetric (Lemma 1 b) <=> small KKT residual; the limit is the optimum.
@@ -226,3 +226,97 @@ def test_absurd_parameters_rejected():
     for kw in ({"rho": -1.0}, {"rho": "fast"}, {"max_iter": 0}, {"solver": "magic"}):
         with pytest.raises(ConfigError):
             solve(problem, **kw)
+
+
+# ---------------------------------------------------------------- registry and contract
+def test_registry_matches_config_names_and_options():
+    from pydantic import BaseModel
+
+    from mvreg.config.solve import SOLVER_NAMES, SolveConfig
+    from mvreg.solver import SOLVERS
+
+    assert tuple(SOLVERS) == SOLVER_NAMES
+    cfg = SolveConfig()
+    assert cfg.solver == next(iter(SOLVERS))
+    for name, entry in SOLVERS.items():
+        assert callable(entry.load())
+        assert isinstance(cfg.options(name), BaseModel)
+        assert cfg.options(name) is getattr(cfg, entry.options_field)
+
+
+def test_solver_base_and_solve_config_import_nothing_of_the_algorithms():
+    import ast
+    from pathlib import Path
+
+    import mvreg
+
+    root = Path(mvreg.__file__).parent
+    allowed = {"solver/base.py": set(), "config/solve.py": {"mvreg.errors"}}
+    for rel, ok in allowed.items():
+        tree = ast.parse((root / rel).read_text())
+        found = {a.name for n in ast.walk(tree) if isinstance(n, ast.Import) for a in n.names}
+        found |= {n.module for n in ast.walk(tree) if isinstance(n, ast.ImportFrom) and n.module}
+        assert {m for m in found if m.split(".")[0] == "mvreg"} <= ok, rel
+
+
+def test_shared_keys_fill_every_solver_section():
+    from mvreg.config import load_config
+    from mvreg.config.solve import SolveConfig
+
+    cfg = SolveConfig(max_iter=50, rho=2.0, tol=1e-8, polish=False)
+    for section in (cfg.reg_admm, cfg.gpm, cfg.balm, cfg.c_admm):
+        assert section.max_iter == 50 and section.tol == 1e-8 and not section.polish
+    assert cfg.reg_admm.rho == 2.0 and cfg.c_admm.rho == 2.0
+    assert SolveConfig().reg_admm.polish and not SolveConfig().gpm.polish
+    reg = load_config(**{"solve.max_iter": 7, "solve.reg_admm.rho": 3.0})
+    assert reg.solve.balm.max_iter == 7 and reg.solve.reg_admm.rho == 3.0
+    with pytest.raises(ConfigError, match="unknown solver"):
+        load_config(**{"solve.solver": "magic"})
+    with pytest.raises(ConfigError, match="rho"):
+        load_config(**{"solve.reg_admm.rho": -1.0})
+
+
+def test_config_and_keyword_overrides_agree():
+    from mvreg.config.solve import GpmOptions, SolveConfig
+
+    problem, _ = make_problem(15, d=3, noise=0.05, seed=2)
+    a = solve(problem, SolveConfig(solver="gpm", gpm=GpmOptions(max_iter=7)))
+    b = solve(problem, solver="gpm", max_iter=7)
+    c = solve(problem, SolveConfig(solver="gpm"), max_iter=7)
+    assert a.iterations == b.iterations == c.iterations == 7
+    assert np.array_equal(a.rotations, b.rotations) and np.array_equal(a.rotations, c.rotations)
+
+
+@pytest.mark.parametrize("solver", ["reg-admm", "spectral", "gpm", "balm", "c-admm"])
+def test_every_solver_calls_back_with_iteration_records(solver):
+    from mvreg.solver import IterationRecord
+
+    problem, _ = make_problem(12, d=3, noise=0.3, seed=5)
+    init = random_rotations(np.random.default_rng(0), 12, 3)
+    got = []
+    res = solve(problem, solver=solver, init=init, max_iter=30, callback=got.append)
+    assert all(isinstance(r, IterationRecord) for r in got)
+    assert len(got) == len(res.history) == res.iterations
+    assert [r.to_dict() for r in got] == res.history
+    for r in got:
+        assert np.isfinite(r.objective) and r.objective >= 0
+
+
+@pytest.fixture(scope="module")
+def six_scans(tmp_path_factory):
+    from data_synth import synthesize_scans
+
+    folder = tmp_path_factory.mktemp("six") / "scans"
+    synthesize_scans("builtin", folder, views=6, points_per_scan=3000, seed=0, random_frames=True)
+    return folder
+
+
+@pytest.mark.parametrize("solver", ["reg-admm", "spectral", "gpm", "balm", "c-admm"])
+def test_register_runs_with_every_solver(solver, six_scans):
+    """Issue 16: register with a non-default solver crashed in the pipeline's callback
+    (the solver handed dicts where the pipeline expects IterationRecord)."""
+    from mvreg.pipeline import register
+
+    reg = register(six_scans, **{"solve.solver": solver, "refine.rounds": 0})
+    assert reg.all_registered, reg.unregistered
+    assert reg.solve.solver == solver

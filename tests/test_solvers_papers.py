@@ -11,7 +11,7 @@ from mvreg.geometry import random_rotations, rotation_angle_deg
 from mvreg.metrics import rotation_errors_deg
 from mvreg.solver import PatchProblem, solve
 from mvreg.solver import c_admm as c_admm_module
-from mvreg.solver.solvers import GENERIC_SOLVERS
+from mvreg.solver.base import SOLVERS
 
 PAPER_SOLVERS = ("gpm", "balm", "c-admm")
 
@@ -33,7 +33,7 @@ def _perturbed(truth_rotations, deg: float, seed: int) -> np.ndarray:
 
 def test_registered():
     for name in ("spectral", *PAPER_SOLVERS):
-        assert name in GENERIC_SOLVERS
+        assert name in SOLVERS
 
 
 @pytest.mark.parametrize("d", [2, 3])

@@ -70,7 +70,8 @@ def config_from(path: Path | None, sets: list[str] | None, **named):
     """The RegisterConfig: defaults < ``path`` < ``--set`` < named options (None: unset)."""
     from mvreg.config import load_config
 
-    return load_config(path, **{**parse_sets(sets), **named})
+    given = {k: v for k, v in named.items() if v is not None}
+    return load_config(path, **{**parse_sets(sets), **given})
 
 
 def check_out_file(path: Path, force: bool):

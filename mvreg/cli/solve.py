@@ -7,21 +7,9 @@ from typing import Annotated
 
 import typer
 
-from mvreg.cli.common import check_out_file, run_guarded
+from mvreg.cli.common import SET_HELP, check_out_file, config_from, run_guarded
 
 app = typer.Typer()
-
-
-def parse_rho(value: str) -> str | float:
-    if value == "auto":
-        return value
-    try:
-        rho = float(value)
-    except ValueError:
-        raise typer.BadParameter(f"'{value}' is not 'auto' or a number") from None
-    if not rho > 0:
-        raise typer.BadParameter(f"rho must be positive, got {value}")
-    return rho
 
 
 @app.command(epilog="Example:  mvreg solve problem.npz --out result.json --rho auto --max-iter 500")
@@ -32,42 +20,56 @@ def solve(
     ],
     out: Annotated[Path, typer.Option("--out", "-o", help="result.json to write.")],
     solver: Annotated[
-        str, typer.Option(help="reg-admm (default) or another registered solver.")
-    ] = "reg-admm",
-    method: Annotated[str, typer.Option(help="auto | dense | matrix-free.")] = "auto",
+        str | None, typer.Option(help="reg-admm (default) or another registered solver.")
+    ] = None,
+    method: Annotated[
+        str | None, typer.Option(help="auto (default) | dense | matrix-free.")
+    ] = None,
     rho: Annotated[
-        str,
-        typer.Option(
-            help="'auto' (Theorem 4, raised on oscillation) or a number.", parser=parse_rho
-        ),
-    ] = "auto",
-    max_iter: Annotated[int, typer.Option(min=1, help="Iteration cap.")] = 500,
-    tol: Annotated[float, typer.Option(help="Relative residual tolerance of REG-ADMM.")] = 1e-6,
+        str | None,
+        typer.Option(help="'auto' (default: Theorem 4, raised on oscillation) or a number."),
+    ] = None,
+    max_iter: Annotated[int | None, typer.Option(help="Iteration cap (default 500).")] = None,
+    tol: Annotated[
+        float | None, typer.Option(help="Relative residual tolerance (default 1e-6).")
+    ] = None,
     allow_reflections: Annotated[
         bool, typer.Option(help="Solve over O(d) instead of SO(d).")
     ] = False,
-    seed: Annotated[int, typer.Option(help="Seed of the iterative eigensolvers.")] = 0,
+    seed: Annotated[int | None, typer.Option(help="Seed of the iterative eigensolvers.")] = None,
+    config: Annotated[
+        Path | None, typer.Option(help="JSON/YAML config file; its 'solve' section is used.")
+    ] = None,
+    set_: Annotated[list[str] | None, typer.Option("--set", help=SET_HELP)] = None,
     force: Annotated[bool, typer.Option(help="Overwrite an existing result.")] = False,
 ):
-    """Solve a patch problem: rotations, translations and a certificate of optimality."""
+    """Solve a patch problem: rotations, translations and a certificate of optimality.
+
+    The options are shortcuts into the configuration's ``solve`` section (the same one
+    ``register`` uses); ``--set solve.gpm.max_iter=50`` reaches every other setting.
+    """
 
     def _run():
         from mvreg.io.poses import write_poses_json
         from mvreg.solver import load_problem
         from mvreg.solver import solve as solve_problem
 
+        cfg = config_from(
+            config,
+            set_,
+            **{
+                "solve.solver": solver,
+                "solve.method": method,
+                "solve.rho": rho,
+                "solve.max_iter": max_iter,
+                "solve.tol": tol,
+                "solve.allow_reflections": allow_reflections or None,
+                "seed": seed,
+            },
+        )
         check_out_file(out, force)
         prob = load_problem(problem)
-        res = solve_problem(
-            prob,
-            solver,
-            method=method,
-            rho=rho,
-            max_iter=max_iter,
-            tol=tol,
-            allow_reflections=allow_reflections,
-            seed=seed,
-        )
+        res = solve_problem(prob, cfg.solve, seed=cfg.seed)
         write_poses_json(
             out,
             res.poses(),
@@ -80,15 +82,7 @@ def solve(
                 "nodes": prob.num_nodes,
                 "observations": prob.num_observations,
             },
-            config={
-                "solver": solver,
-                "method": method,
-                "rho": rho,
-                "max_iter": max_iter,
-                "tol": tol,
-                "allow_reflections": allow_reflections,
-                "seed": seed,
-            },
+            config={"solve": cfg.solve.model_dump(mode="json"), "seed": cfg.seed},
         )
         typer.echo(res.summary())
         return res

@@ -98,9 +98,22 @@ def load_config(path: str | Path | None = None, **overrides) -> RegisterConfig:
     try:
         return RegisterConfig.model_validate(data)
     except ValidationError as e:
-        err = e.errors()[0]
-        where = ".".join(str(x) for x in err["loc"])
         raise ConfigError(
-            f"{'config' if path is None else path}: {where}: {err['msg']}"
-            + (f" (got {err.get('input')!r})" if "input" in err else "")
+            f"{'config' if path is None else path}: {validation_message(e)}"
         ) from None
+
+
+def validation_message(e: ValidationError) -> str:
+    """One line for a pydantic error: the field, what it should be, the value given.
+
+    The alternatives of a union (``'auto'`` or a positive number) are joined with "or"."""
+    errors = e.errors()
+    field = [str(x) for x in errors[0]["loc"] if isinstance(x, int) or str(x).isidentifier()]
+    same = [
+        err
+        for err in errors
+        if [str(x) for x in err["loc"] if isinstance(x, int) or str(x).isidentifier()] == field
+    ]
+    msgs = list(dict.fromkeys(err["msg"].removeprefix("Value error, ") for err in same))
+    got = f" (got {errors[0]['input']!r})" if "input" in errors[0] else ""
+    return f"{'.'.join(field) or 'config'}: {' or '.join(msgs)}{got}"

@@ -15,8 +15,7 @@ import numpy as np
 
 from mvreg.config.solve import SolveConfig
 from mvreg.pairwise import Tracks
-from mvreg.solver import SolveResult, solve
-from mvreg.solver.reg_admm import IterationRecord
+from mvreg.solver import IterationRecord, SolveResult, solve
 
 
 @dataclass
@@ -50,18 +49,7 @@ class TrackSolver:
         R0 = "spectral"
         if init is not None and all(s in init for s in scans):
             R0 = np.stack([init[s][:3, :3] for s in scans])
-        s = self.cfg
-        res = solve(
-            problem,
-            s.solver,
-            method=s.method,
-            rho=s.rho,
-            max_iter=s.max_iter,
-            allow_reflections=s.allow_reflections,
-            init=R0,
-            seed=self.seed,
-            callback=self.callback,
-        )
+        res = solve(problem, self.cfg, init=R0, seed=self.seed, callback=self.callback)
         if self.callback is not None:  # one point per global solve, after its iterations
             c = res.certificate
             self.callback(

@@ -27,8 +27,7 @@ mu ||Q_new - Q_old||_F / (lambda_max sqrt(n)) <= inner_tol, with inner_tol = max
 
 with two safeguards added to Algorithm 3.1: a consensus residual already below tol counts
 as sufficient decrease (no penalty increase), and mu stops growing at mu_max = 10
-lambda_max(C) (multiplier updates only from there on). Without them mu grew without bound
-once X = Q to machine precision and the Q-updates (steps ~1/mu) stalled.
+lambda_max(C) (multiplier updates only from there on); why: docs/design/solver.md.
 
 Paper 002 Theorem 2: with bounded multipliers every limit point satisfies the first-order
 conditions, i.e. Q is a KKT point of O-REG (paper 000 Lemma 1).
@@ -38,13 +37,19 @@ gamma = 2, eta = 0.25, Y_0 = -2 C Q_0 (the multiplier consistent with X = Q = Q_
 
 Stopping rule: after an outer iteration, stop when both the relative consensus residual
 ||X - Q||_F / sqrt(n) and the KKT residual of Q, ||(C + Lambda) Q||_F / (lambda_max sqrt(n))
-(the certificate's definition), are <= ctx.tol; or after ctx.max_iter outer iterations.
+(the certificate's definition), are <= tol; or after max_iter outer iterations.
 The output is Q (always feasible).
+
+Options: ``solve.balm`` (BalmOptions: max_iter, tol, polish, mu0, gamma, eta, inner_max,
+inner_tol, mu_max_factor, inner_rel, cg_rtol, cg_maxiter). Iteration records: the
+objective f(Q) in the problem's units; primal_residual the consensus residual;
+dual_residual the KKT residual of Q; rho the penalty mu; extra: kkt_residual, mu, update
+("multiplier" or "penalty"), sweeps (cumulative).
 
 Accuracy: the certificate (solve()) bounds the suboptimality by ~||grad||^2 / mu, so on
 noisy data a KKT residual of ~1e-6 (what tol = 1e-6 gives) is often too inexact to be
 certified although the point is the global optimum; tol ~1e-9 (used in the benchmarks) or
-``solve(..., polish_steps=True)`` gives certifiable output.
+``solve(..., polish=True)`` gives certifiable output (docs/design/solver.md).
 """
 
 from __future__ import annotations
@@ -55,9 +60,9 @@ import time
 import numpy as np
 import scipy.linalg as sla
 
-from mvreg.solver.blocks import block_apply, round_to_rotations, x_from_rotations
+from mvreg.solver.base import IterationRecord, SolverContext, SolverRun
+from mvreg.solver.blocks import block_apply, feasible_x, project_blocks, rotations_from_x
 from mvreg.solver.certificate import multipliers
-from mvreg.solver.gpm import _project_blocks
 
 
 class _XSolver:
@@ -132,66 +137,58 @@ class _XSolver:
         return X
 
 
-def run_balm(
-    op,
-    R0: np.ndarray,
-    ctx,
-    *,
-    mu0: float | None = None,
-    gamma: float = 2.0,
-    eta: float = 0.25,
-    inner_max: int = 50,
-    inner_tol: float | None = None,
-    mu_max_factor: float = 10.0,
-    inner_rel: float = 0.1,
-    cg_rtol: float = 1e-10,
-    cg_maxiter: int = 500,
-):
-    """BALM from rotations R0 (M, d, d); returns a GenericRun (see module docstring)."""
-    from mvreg.solver.solvers import GenericRun
+def _sweeps(xs, X, Q, Y, mu, inner_tol, sub, lam_max, ctx):
+    """Gauss-Seidel sweeps on L_mu(., .; Y) (Algorithm 2.1) until the subproblem is solved
+    to first order. Returns (X, Q, subproblem residual, sweeps done)."""
+    d, n = ctx.operator.d, ctx.operator.n
+    done = 0
+    # After a sweep the X-part of the subproblem gradient is mu (Q_old - Q_new) (the
+    # X-update is exact), so the subproblem is solved to first order when mu ||dQ|| is small.
+    for _ in range(ctx.options.inner_max):
+        # Inexact X-solves (matrix-free): the residual of (2C + mu I) X = mu Q - Y is an
+        # error in the X-gradient of L_mu; keep it a tenth of the current subproblem
+        # residual (and of inner_tol at the end), in the same units.
+        atol = 0.1 * max(inner_tol, sub) * lam_max * math.sqrt(n)
+        X = xs.solve(mu * Q - Y, X, atol)
+        Q_new, _ = project_blocks(X + Y / mu, d, ctx.allow_reflections)
+        done += 1
+        sub = mu * float(np.linalg.norm(Q_new - Q)) / (lam_max * math.sqrt(n))
+        Q = Q_new
+        if sub <= inner_tol:
+            break
+    return X, Q, sub, done
 
+
+def run(ctx: SolverContext) -> SolverRun:
+    """Registry entry "balm": BALM from ctx.start (see the module docstring)."""
+    op, o = ctx.operator, ctx.options
     d, n = op.d, op.n
     lam_max = float(ctx.spectrum.largest)
     lam_d1 = float(ctx.spectrum.smallest[min(d, n - 1)])
     s2 = op.norm.scale**2
-    mu = float(mu0) if mu0 is not None else max(lam_d1, 1e-6 * lam_max)
-    mu_max = mu_max_factor * lam_max
-    adaptive_inner = inner_tol is None
-    inner_tol = ctx.tol if inner_tol is None else inner_tol
-    xs = _XSolver(op, ctx.dense, cg_rtol, cg_maxiter)
-    Q = x_from_rotations(round_to_rotations(x_from_rotations(R0), d, ctx.allow_reflections))
+    mu = mu_initial = float(o.mu0) if o.mu0 is not None else max(lam_d1, 1e-6 * lam_max)
+    mu_max = o.mu_max_factor * lam_max
+    inner_tol = o.tol if o.inner_tol is None else o.inner_tol
+    xs = _XSolver(op, ctx.dense, o.cg_rtol, o.cg_maxiter)
+    Q = feasible_x(ctx.start, d, ctx.allow_reflections)
     X = Q.copy()
     Y = -2.0 * op.matvec(Q)
     eps_best = math.inf
     history = []
     converged = False
     sweeps = 0
-    mult_updates = 0
-    mu_increases = 0
+    counts = {"multiplier_updates": 0, "penalty_increases": 0}
     k = 0
     t0 = time.perf_counter()
     sub = 1.0
     kkt = math.inf
-    for k in range(1, ctx.max_iter + 1):
+    for k in range(1, o.max_iter + 1):
         xs.set_mu(mu)
-        if adaptive_inner:
+        if o.inner_tol is None:
             # Inexact inner solves: a tenth of the last KKT residual (never below tol).
-            inner_tol = max(ctx.tol, inner_rel * kkt) if math.isfinite(kkt) else 1e-2
-        # Gauss-Seidel sweeps on L_mu(., .; Y) (Algorithm 2.1). After a sweep the X-part of
-        # the subproblem gradient is mu (Q_old - Q_new) (the X-update is exact), so the
-        # subproblem is solved to first order when mu ||dQ|| is small.
-        for _ in range(inner_max):
-            # Inexact X-solves (matrix-free): the residual of (2C + mu I) X = mu Q - Y is an
-            # error in the X-gradient of L_mu; keep it a tenth of the current subproblem
-            # residual (and of inner_tol at the end), in the same units.
-            atol = 0.1 * max(inner_tol, sub) * lam_max * math.sqrt(n)
-            X = xs.solve(mu * Q - Y, X, atol)
-            Q_new, _ = _project_blocks(X + Y / mu, d, ctx.allow_reflections)
-            sweeps += 1
-            sub = mu * float(np.linalg.norm(Q_new - Q)) / (lam_max * math.sqrt(n))
-            Q = Q_new
-            if sub <= inner_tol:
-                break
+            inner_tol = max(o.tol, o.inner_rel * kkt) if math.isfinite(kkt) else 1e-2
+        X, Q, sub, done = _sweeps(xs, X, Q, Y, mu, inner_tol, sub, lam_max, ctx)
+        sweeps += done
         diff = X - Q
         eps = float(np.sum(diff * diff))
         CQ = op.matvec(Q)
@@ -201,43 +198,38 @@ def run_balm(
         # Algorithm 3.1, with two safeguards: a consensus residual already below tol counts as
         # sufficient decrease, and mu stops growing at mu_max (beyond ~lambda_max a larger
         # penalty only slows the Q-updates down).
-        if eps < eta * eps_best or primal <= ctx.tol or mu >= mu_max:
+        if eps < o.eta * eps_best or primal <= o.tol or mu >= mu_max:
             Y = Y + mu * diff
             eps_best = min(eps, eps_best)
-            mult_updates += 1
+            counts["multiplier_updates"] += 1
             action = "multiplier"
         else:
-            mu = min(gamma * mu, mu_max)
-            mu_increases += 1
+            mu = min(o.gamma * mu, mu_max)
+            counts["penalty_increases"] += 1
             action = "penalty"
-        rec = {
-            "iteration": k,
-            "objective": float(np.sum(Q * CQ)) * s2,
-            "primal_residual": primal,
-            "kkt_residual": kkt,
-            "mu": mu,
-            "update": action,
-            "sweeps": sweeps,
-        }
-        history.append(rec)
-        if ctx.callback is not None:
-            ctx.callback(rec)
-        if primal <= ctx.tol and kkt <= ctx.tol:
+        rec = IterationRecord(
+            k,
+            float(np.sum(Q * CQ)) * s2,
+            primal_residual=primal,
+            dual_residual=kkt,
+            rho=mu,
+            extra={"kkt_residual": kkt, "mu": mu, "update": action, "sweeps": sweeps},
+        )
+        ctx.emit(rec, history)
+        if primal <= o.tol and kkt <= o.tol:
             converged = True
             break
-    R = Q.reshape(-1, d, d).transpose(0, 2, 1)
-    return GenericRun(
-        rotations=np.ascontiguousarray(R),
+    return SolverRun(
+        rotations=np.ascontiguousarray(rotations_from_x(Q, d)),
         iterations=k,
         converged=converged,
         history=history,
         stats={
             "gauss_seidel_sweeps": sweeps,
-            "multiplier_updates": mult_updates,
-            "penalty_increases": mu_increases,
-            "mu_initial": float(mu0) if mu0 is not None else max(lam_d1, 1e-6 * lam_max),
+            **counts,
+            "mu_initial": mu_initial,
             "mu_final": mu,
-            "kkt_residual_final": history[-1]["kkt_residual"] if history else math.nan,
+            "kkt_residual_final": history[-1].dual_residual if history else math.nan,
             "x_solver": "cholesky" if ctx.dense else "block-cg",
             "cholesky_factorizations": xs.factorizations,
             "cg_steps": xs.cg_steps,

@@ -1,4 +1,8 @@
-"""Block helpers. X = O^T is (n, d) with n = M d; block i is X_i = R_i^T (d x d)."""
+"""Block helpers shared by the solvers.
+
+X = O^T is (n, d) with n = M d; block i is X_i = R_i^T (d x d). Rotations are (M, d, d)
+R_world_patch. Pure functions of arrays; no state.
+"""
 
 from __future__ import annotations
 
@@ -33,6 +37,33 @@ def round_to_rotations(X: np.ndarray, d: int, allow_reflections: bool = False) -
             blocks = X.reshape(-1, d, d)
     xi = project_to_orthogonal(blocks, allow_reflections=allow_reflections)  # X_i
     return xi.transpose(0, 2, 1)
+
+
+def feasible_x(R: np.ndarray, d: int, allow_reflections: bool = False) -> np.ndarray:
+    """X = O^T (n, d) on the constraint set from any (M, d, d) start: blocks rounded to
+    SO(d) / O(d) first (see round_to_rotations)."""
+    return x_from_rotations(round_to_rotations(x_from_rotations(R), d, allow_reflections))
+
+
+def project_blocks(Y: np.ndarray, d: int, allow_reflections: bool) -> tuple[np.ndarray, float]:
+    """Blockwise X_i = argmax Tr(Q^T Y_i) over O(d) / SO(d) for Y (n, d), and the attained
+    sum_i max Tr(Q^T Y_i). Q = U V^T from the SVD Y_i = U S V^T; for SO(d) the last
+    singular direction's sign is flipped where det(U V^T) < 0."""
+    blocks = Y.reshape(-1, d, d)
+    u, s, vt = np.linalg.svd(blocks)
+    if allow_reflections:
+        q = u @ vt
+        best = float(np.sum(s))
+    else:
+        sign = np.sign(np.linalg.det(u @ vt))
+        sign[sign == 0] = 1.0
+        u = u.copy()
+        u[:, :, -1] *= sign[:, None]
+        q = u @ vt
+        s = s.copy()
+        s[:, -1] *= sign
+        best = float(np.sum(s))
+    return q.reshape(-1, d), best
 
 
 def sym(a: np.ndarray) -> np.ndarray:

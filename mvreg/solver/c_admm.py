@@ -12,17 +12,16 @@ Iteration (the same augmented Lagrangian as REG-ADMM, eq. 6; only the G-update d
 Dense only: one dense symmetric eigendecomposition of an Md x Md matrix per iteration,
 O((Md)^3) time and O((Md)^2) memory. Pi_PSD needs exactly the eigenpairs with positive
 eigenvalues (the negative ones are clipped to 0), so by default LAPACK syevr is asked for
-the eigenvalues in (0, inf) only: the same projection as a full decomposition, 2-4x faster
+the eigenvalues in (0, inf) only: the same projection as a full decomposition, and faster
 (``full_eig=True`` computes all of them). Size limit: ``M d <= C_ADMM_MAX_N`` (1500);
-larger problems are refused with a ConfigError. At M d = 1500 one iteration takes ~0.4 s
-on one core and C-ADMM typically needs 300-1500 iterations (docs/benchmarks/solvers.md).
+larger problems are refused with a ConfigError.
 
 Start: H0 = G0 = O0^T O0 from the initial rotations (spectral by default) and the dual
 Lambda0 = -sym(bd(C G0)) (paper 000 Prop. 2's dual at G0).
 
 rho: "auto" starts from sqrt(lambda_{d+1}(C) lambda_max(C)) / M (C's scale per unit
-eigenvalue of G, G's eigenvalues being ~M; measured on synthetic problems to need fewer
-iterations than lambda_{d+1}/M or lambda_max/M across noise levels) and is then balanced
+eigenvalue of G, G's eigenvalues being ~M; why this value: docs/design/solver.md) and is
+then balanced
 during the first ``balance_until`` (200) iterations (Boyd et al. 2011, Sec. 3.4.1): doubled
 when the primal residual exceeds 10x the dual one, halved in the opposite case, at most
 every ``balance_every`` (20) iterations. Balancing is then frozen, so the iteration is
@@ -35,19 +34,23 @@ G' = D^{-1/2} G D^{-1/2} (D = bd(G)) gives the upper bound Tr(C G'), and the dua
 the lower bound -Tr(Lambda) + Md lambda_min(C + Lambda). Called directly (``c_admm``), the
 run also stops when (upper - lower) <= tol * max(upper, 1e-12 lambda_max Md).
 
-Through solve() (``run_c_admm``) the duality-gap exit is replaced by a certificate exit,
-checked at the same iterations once the primal residual is below 100 tol: the top-d
-eigenvectors of G' are rounded to rotations and passed to the global-optimality
+Through solve() (``run``, the registry entry) the duality-gap exit is replaced by a
+certificate exit, checked at the same iterations once the primal residual is below 100 tol:
+the top-d eigenvectors of G' are rounded to rotations and passed to the global-optimality
 certificate (certificate.py, default gap tolerance); if they are certified, O^T O is the
 optimum of C-SDP (rank d, the relaxation is tight) up to that tolerance, and C-ADMM stops
-("stopped_by": "certificate"), typically well before both residuals reach tol. (A C-SDP
-gap below tol alone did not make the rounded rotations accurate enough for the certificate
-that solve() reports.)
+("stopped_by": "certificate"), typically well before both residuals reach tol.
 
 Rank (tightness of the relaxation, paper 000 Fig. 3): the number of eigenvalues of the
 final G' above ``rank_rtol`` (1e-3) times its largest eigenvalue (~M). rank == d means the
 relaxation is tight: G' = O^T O is the global optimum of REG-SDP too. Rounding: the top-d
 eigenvectors of G' scaled by sqrt(eigenvalue), each d x d block projected onto SO(d)/O(d).
+
+Options: ``solve.c_admm`` (CAdmmOptions: max_iter, tol, polish, rho, gap_every,
+balance_every, balance_until, balance, balance_ratio, full_eig, rank_rtol). Iteration
+records: objective Tr(C G) in the problem's units, the primal and dual residuals above,
+rho; extra: positive_eigenvalues, and upper / lower (problem units) where the gap was
+computed. Design notes and measurements: docs/design/solver.md.
 """
 
 from __future__ import annotations
@@ -60,7 +63,9 @@ import numpy as np
 import scipy.linalg as sla
 
 from mvreg.errors import ConfigError
+from mvreg.solver.base import IterationRecord, SolverContext, SolverRun
 from mvreg.solver.blocks import round_to_rotations, sym, x_from_rotations
+from mvreg.solver.certificate import DEFAULT_GAP_TOL, certify
 
 C_ADMM_MAX_N = 1500
 RANK_RTOL = 1e-3
@@ -79,7 +84,7 @@ class CAdmmResult:
     upper: float  # Tr(C G) at the feasible G (normalized units)
     lower: float  # dual lower bound (normalized units)
     rho_final: float
-    history: list = field(default_factory=list)
+    history: list[IterationRecord] = field(default_factory=list)
 
 
 def _bd(a: np.ndarray, m: int, d: int) -> np.ndarray:
@@ -151,8 +156,13 @@ def c_admm(
     callback=None,
     full_eig: bool = False,
     certify_fn=None,
+    objective_scale: float = 1.0,
 ) -> CAdmmResult:
-    """Run C-ADMM on a dense normalized C (n, n). See the module docstring."""
+    """Run C-ADMM on a dense normalized C (n, n). See the module docstring.
+
+    History and callback: one IterationRecord per iteration, objective (and the bounds in
+    ``extra``) in the units of C times ``objective_scale``.
+    """
     n = C.shape[0]
     m = n // d
     check_size(n)
@@ -201,21 +211,23 @@ def c_admm(
         dr = dh / max(float(np.linalg.norm(H)), 1e-300)
         lam = lam + rho_v * resid
         H = H_new
-        rec = {
-            "iteration": k,
-            "objective": float(np.sum(C * G)),
-            "primal_residual": pr,
-            "dual_residual": dr,
-            "rho": rho_v,
-            "positive_eigenvalues": int(np.sum(w > rank_rtol * max(w[-1], 1e-300)))
-            if w.size
-            else 0,
-        }
+        rec = IterationRecord(
+            k,
+            float(np.sum(C * G)) * objective_scale,
+            primal_residual=pr,
+            dual_residual=dr,
+            rho=rho_v,
+            extra={
+                "positive_eigenvalues": int(np.sum(w > rank_rtol * max(w[-1], 1e-300)))
+                if w.size
+                else 0
+            },
+        )
         if pr <= tol and dr <= tol:
             converged, stopped_by = True, "residuals"
         elif gap_every and k % gap_every == 0:
             upper, lower, Gf = _bounds(C, G, lam, m, d, lam_max)
-            rec.update(upper=upper, lower=lower)
+            rec.extra.update(upper=upper * objective_scale, lower=lower * objective_scale)
             if certify_fn is None and upper - lower <= tol * max(upper, 1e-12 * lam_max * n):
                 converged, stopped_by = True, "duality_gap"
             elif certify_fn is not None and pr <= 100.0 * tol:
@@ -276,42 +288,43 @@ def c_admm(
     )
 
 
-def run_c_admm(op, R0: np.ndarray, ctx):
-    """Registry entry (GENERIC_SOLVERS["c-admm"]): C-ADMM on op.dense(), rounded rotations."""
-    from mvreg.solver.solvers import GenericRun
-
+def run(ctx: SolverContext) -> SolverRun:
+    """Registry entry "c-admm": C-ADMM on the dense C from ctx.start, rounded rotations."""
+    op, o = ctx.operator, ctx.options
     d, n, m = op.d, op.n, op.M
     check_size(n)  # before forming anything dense
     t0 = time.perf_counter()
     C = op.dense()
     lam_max = float(ctx.spectrum.largest)
     lam_d1 = float(ctx.spectrum.smallest[min(d, n - 1)])
-    from mvreg.solver.certificate import DEFAULT_GAP_TOL, certify
 
     def certify_fn(R):
         return certify(op, R, lam_max, True, DEFAULT_GAP_TOL, ctx.seed).certified
 
+    s2 = op.norm.scale**2
     res = c_admm(
         C,
         d,
-        R0,
+        ctx.start,
         certify_fn=certify_fn,
-        rho=ctx.rho,
+        rho=o.rho,
         lam_d1=lam_d1,
         lam_max=lam_max,
-        max_iter=ctx.max_iter,
-        tol=ctx.tol,
+        max_iter=o.max_iter,
+        tol=o.tol,
         allow_reflections=ctx.allow_reflections,
+        rank_rtol=o.rank_rtol,
+        gap_every=o.gap_every,
+        balance_every=o.balance_every,
+        balance_until=o.balance_until,
+        balance=o.balance,
+        balance_ratio=o.balance_ratio,
         callback=ctx.callback,
+        full_eig=o.full_eig,
+        objective_scale=s2,
     )
-    s2 = op.norm.scale**2
-    for rec in res.history:
-        rec["objective"] *= s2
-        for key in ("upper", "lower"):
-            if key in rec:
-                rec[key] *= s2
     top = res.eigenvalues[: min(n, d + 3)] / m
-    return GenericRun(
+    return SolverRun(
         rotations=res.rotations,
         iterations=res.iterations,
         converged=res.converged,
@@ -319,7 +332,7 @@ def run_c_admm(op, R0: np.ndarray, ctx):
         stats={
             "rank": res.rank,
             "tight": res.rank == d,
-            "rank_rtol": RANK_RTOL,
+            "rank_rtol": o.rank_rtol,
             "eigenvalues_over_M": [float(x) for x in top],
             "sdp_objective": res.upper * s2,
             "sdp_lower_bound": res.lower * s2,

@@ -17,14 +17,19 @@ g(X+) >= g(X) + 2 Tr((X+ - X)^T Y) >= g(X), because X+ maximizes Tr(X+^T Y) bloc
 Stopping rule (documented; checked every iteration):
     * relative cost decrease (f_k - f_{k+1}) / (alpha M d) <= tol, and
     * block change ||X_{k+1} - X_k||_F / sqrt(M d) <= tol,
-  or the iteration cap ``ctx.max_iter``. The fixed-point gap of paper 001 Sec. 5
+  or the iteration cap ``max_iter``. The fixed-point gap of paper 001 Sec. 5
   (1 - Tr(X^T Y) / sum_i ||Y_i||_*, zero exactly at fixed points of the iteration) is
   recorded in the history for reference.
+
+Options: ``solve.gpm`` (GpmOptions: max_iter, tol, polish). Iteration records: the
+objective f in the problem's units; primal_residual 0 (every iterate is feasible);
+dual_residual the block change; rho None; extra: relative_decrease, block_change,
+fixed_point_gap.
 
 Accuracy: the certificate (solve()) bounds the suboptimality by ~||grad||^2 / mu, so on
 noisy data a KKT residual of ~1e-6 (what tol = 1e-6 gives) is often too inexact to be
 certified although the point is the global optimum; tol ~1e-9 (used in the benchmarks) or
-``solve(..., polish_steps=True)`` gives certifiable output.
+``solve(..., polish=True)`` gives certifiable output (docs/design/solver.md).
 """
 
 from __future__ import annotations
@@ -34,39 +39,19 @@ import time
 
 import numpy as np
 
-from mvreg.solver.blocks import round_to_rotations, x_from_rotations
+from mvreg.solver.base import IterationRecord, SolverContext, SolverRun
+from mvreg.solver.blocks import feasible_x, project_blocks, rotations_from_x
 
 
-def _project_blocks(Y: np.ndarray, d: int, allow_reflections: bool) -> tuple[np.ndarray, float]:
-    """X_i = argmax Tr(Q^T Y_i) over O(d) / SO(d) (Q = U V^T with the last sign fixed), and
-    the attained sum_i max Tr(Q^T Y_i)."""
-    blocks = Y.reshape(-1, d, d)
-    u, s, vt = np.linalg.svd(blocks)
-    if allow_reflections:
-        q = u @ vt
-        best = float(np.sum(s))
-    else:
-        sign = np.sign(np.linalg.det(u @ vt))
-        sign[sign == 0] = 1.0
-        u = u.copy()
-        u[:, :, -1] *= sign[:, None]
-        q = u @ vt
-        s = s.copy()
-        s[:, -1] *= sign
-        best = float(np.sum(s))
-    return q.reshape(-1, d), best
-
-
-def run_gpm(op, R0: np.ndarray, ctx):
-    """GPM from rotations R0 (M, d, d); returns a GenericRun (see module docstring)."""
-    from mvreg.solver.solvers import GenericRun
-
+def run(ctx: SolverContext) -> SolverRun:
+    """Registry entry "gpm": GPM from ctx.start (see the module docstring)."""
+    op, opts, R0 = ctx.operator, ctx.options, ctx.start
     d, n = op.d, op.n
     alpha = float(ctx.spectrum.largest)
     s2 = op.norm.scale**2
     scale = alpha * n  # f in [0, alpha n]
     # Start exactly on the constraint set (R0 may come from anywhere).
-    X = x_from_rotations(round_to_rotations(x_from_rotations(R0), d, ctx.allow_reflections))
+    X = feasible_x(R0, d, ctx.allow_reflections)
     CX = op.matvec(X)
     f = float(np.sum(X * CX))
     history = []
@@ -74,9 +59,9 @@ def run_gpm(op, R0: np.ndarray, ctx):
     increases = 0
     k = 0
     t0 = time.perf_counter()
-    for k in range(1, ctx.max_iter + 1):
+    for k in range(1, opts.max_iter + 1):
         Y = alpha * X - CX
-        X_new, attained = _project_blocks(Y, d, ctx.allow_reflections)
+        X_new, attained = project_blocks(Y, d, ctx.allow_reflections)
         inner = float(np.sum(X * Y))
         fp_gap = 1.0 - inner / attained if attained > 0 else 0.0
         CX_new = op.matvec(X_new)
@@ -86,22 +71,19 @@ def run_gpm(op, R0: np.ndarray, ctx):
         if f_new > f + 1e-12 * scale:
             increases += 1  # impossible in exact arithmetic (alpha I - C PSD): recorded
         X, CX, f = X_new, CX_new, f_new
-        rec = {
-            "iteration": k,
-            "objective": f * s2,
-            "relative_decrease": dec,
-            "block_change": change,
-            "fixed_point_gap": fp_gap,
-        }
-        history.append(rec)
-        if ctx.callback is not None:
-            ctx.callback(rec)
-        if abs(dec) <= ctx.tol and change <= ctx.tol:
+        rec = IterationRecord(
+            k,
+            f * s2,
+            primal_residual=0.0,
+            dual_residual=change,
+            extra={"relative_decrease": dec, "block_change": change, "fixed_point_gap": fp_gap},
+        )
+        ctx.emit(rec, history)
+        if abs(dec) <= opts.tol and change <= opts.tol:
             converged = True
             break
-    R = X.reshape(-1, d, d).transpose(0, 2, 1)
-    return GenericRun(
-        rotations=np.ascontiguousarray(R),
+    return SolverRun(
+        rotations=np.ascontiguousarray(rotations_from_x(X, d)),
         iterations=k,
         converged=converged,
         history=history,

@@ -1,10 +1,10 @@
 """Intel MKL PARDISO for the symmetric sparse systems of the solver (ctypes, no extra wrapper).
 
-PARDISO is a supernodal, multithreaded direct solver with METIS ordering: on the bordered
-systems of shift_invert.py it factorizes ~8x faster than SciPy's SuperLU in
-nested-dissection order (M = 100,000 patches, 400k unknowns: 9.3 s against 75 s, measured
-on the 2-core development machine). It is used when MKL's runtime library (the ``mkl``
-wheel on x86-64) can be loaded; otherwise the solver falls back to SuperLU.
+PARDISO is a supernodal, multithreaded direct solver with METIS ordering; on the bordered
+systems of shift_invert.py it factorizes much faster than SciPy's SuperLU (measurements:
+docs/design/solver.md). It is used when MKL's runtime library (the ``mkl`` wheel on x86-64)
+can be loaded; otherwise the solver falls back to SuperLU. ``available()`` says which;
+``disabled()`` forces the fallback within a block.
 
 Matrices are factorized as real symmetric indefinite (mtype -2, Bunch-Kaufman pivoting), so
 the same code serves the positive definite shift-invert systems and the Newton systems,
@@ -18,6 +18,8 @@ import glob
 import os
 import site
 import sys
+from collections.abc import Iterator
+from contextlib import contextmanager
 from ctypes.util import find_library
 
 import numpy as np
@@ -76,6 +78,18 @@ def _load() -> ctypes.CDLL | None:
 def available() -> bool:
     """Whether MKL PARDISO can be loaded on this machine."""
     return _load() is not None
+
+
+@contextmanager
+def disabled() -> Iterator[None]:
+    """Within the block PARDISO counts as unavailable (the SuperLU / AMG fallbacks run)."""
+    global _LIB, _TRIED
+    saved = _LIB, _TRIED
+    _LIB, _TRIED = None, True
+    try:
+        yield
+    finally:
+        _LIB, _TRIED = saved
 
 
 class PardisoFactor:

@@ -7,20 +7,32 @@
 The state is U (n, d), s (d) with G = U diag(s) U^T and the M dual blocks: memory is
 linear in M. Since H = G - bd(G) + I, A = U diag(s) U^T + D - C/rho with the block
 diagonal D = I - bd(G) - Lambda/rho. The dense variant forms A and uses an exact
-eigensolver; the matrix-free one runs LOBPCG on the operator, warm started from U.
+eigensolver; the matrix-free one runs ``lobpcg_steps`` LOBPCG steps on the operator per
+iteration, warm started from U.
 
 rho = "auto": Theorem 4's value lambda_{d+1}(C) / (2 M sqrt(d)) (feasible H0, Lambda0 = 0),
-doubled whenever the primal residual stops decreasing (the non-attenuating oscillation of
-paper section 2.6), up to lambda_max(C). Every change is recorded with its reason.
+doubled whenever the primal residual has not fallen below 0.99 x its best for ``stall_window``
+iterations (the non-attenuating oscillation of paper section 2.6), up to lambda_max(C).
+Every change is recorded with its reason (``SolverRun.rho_history``). A number fixes rho.
 
 Stopping: the relative primal residual ||bd(G) - I||_F / sqrt(Md) and the relative dual
-residual ||H^{k+1} - H^k||_F / ||H^k||_F both below ``tol``; or, at checkpoints, when the
-rounded iterate, Newton-polished to a KKT point, is certified globally optimal.
+residual ||H^{k+1} - H^k||_F / ||H^k||_F both below ``tol``, or ``max_iter``; or, with
+``polish`` (the default), at a checkpoint (the start, then iterations 1, 2, 5, 10, 20, 50,
+..., and max_iter) when the rounded iterate, Newton-polished to a KKT point, is certified
+globally optimal. Without ``polish`` the run is plain eq. (7) (paper experiments).
+
+Registry entry ``run(ctx)`` (see mvreg.solver.base): options ``solve.reg_admm``
+(RegAdmmOptions: rho, max_iter, tol, polish, lobpcg_steps, stall_window). Returns checked
+rotations: the best polished point (lowest cost) over the checkpoints and the last iterate,
+with its certificate; or, without ``polish``, the rounded last iterate, certified.
+Iteration records: objective Tr(C G) in the problem's units, the relative primal and dual
+residuals, rho. Design notes: docs/design/solver.md.
 """
 
 from __future__ import annotations
 
 import math
+import time
 import warnings
 from collections.abc import Callable
 from dataclasses import dataclass, field
@@ -29,12 +41,15 @@ import numpy as np
 import scipy.linalg as sla
 import scipy.sparse.linalg as spla
 
+from mvreg.solver.base import IterationRecord, SolverContext, SolverRun
 from mvreg.solver.blocks import (
     block_apply,
     diag_blocks_of_gram,
     round_to_rotations,
     x_from_rotations,
 )
+from mvreg.solver.certificate import certify
+from mvreg.solver.polish import polish
 
 
 @dataclass
@@ -42,15 +57,6 @@ class AdmmState:
     U: np.ndarray  # (n, d)
     s: np.ndarray  # (d,)
     lam: np.ndarray  # (M, d, d)
-    rho: float
-
-
-@dataclass
-class IterationRecord:
-    iteration: int
-    objective: float  # Tr(C G) in the problem's units
-    primal_residual: float
-    dual_residual: float
     rho: float
 
 
@@ -178,3 +184,140 @@ def run_reg_admm(
 def rotations_from_state(state: AdmmState, d: int, allow_reflections: bool) -> np.ndarray:
     """O = diag(sqrt(s)) U^T, blocks rounded to SO(d) / O(d)."""
     return round_to_rotations(state.U * np.sqrt(np.maximum(state.s, 0.0)), d, allow_reflections)
+
+
+def _checkpoints(max_iter: int) -> set[int]:
+    """Iterations after which the rounded iterate is polished and certified: 1, 2, 5, 10, ..."""
+    pts, k = set(), 1
+    while k <= max_iter:
+        for b in (1, 2, 5):
+            if b * k <= max_iter:
+                pts.add(b * k)
+        k *= 10
+    pts.add(max_iter)
+    return pts
+
+
+class _BestPoint:
+    """The best Newton-polished rounded iterate seen so far and its certificate.
+
+    ``check(k, state)`` polishes the rounded iterate; if that reaches a lower cost than
+    before it is certified and kept. Returns True once a kept point is certified.
+    """
+
+    def __init__(self, ctx: SolverContext):
+        self.ctx = ctx
+        self.lam_max = ctx.spectrum.largest
+        self.R = None
+        self.f = np.inf
+        self.cert = None
+        self.polish = None
+        self.at = None
+        self.t_polish = 0.0
+        self.t_cert = 0.0
+
+    @property
+    def certified(self) -> bool:
+        return self.cert is not None and self.cert.certified
+
+    def _polish(self, R):
+        t0 = time.perf_counter()
+        out = polish(self.ctx.operator, R, self.lam_max, self.ctx.allow_reflections)
+        self.t_polish += time.perf_counter() - t0
+        return out
+
+    def _certify(self, R, inverse):
+        t0 = time.perf_counter()
+        c = self.ctx
+        cert = (
+            certify(c.operator, R, self.lam_max, c.dense, c.gap_tol, c.seed, inverse=inverse)
+            if c.certify
+            else None
+        )
+        self.t_cert += time.perf_counter() - t0
+        return cert
+
+    def check(self, k: int, state: AdmmState) -> bool:
+        R = rotations_from_state(state, self.ctx.operator.d, self.ctx.allow_reflections)
+        Rp, pst = self._polish(R)
+        if pst.objective >= self.f - 1e-12 * max(abs(self.f), 1e-300):
+            return False  # same stationary point as before: already checked
+        cert = self._certify(Rp, pst.inverse)
+        pst.inverse = None  # free the factorization
+        self.R, self.f, self.cert, self.polish, self.at = Rp, pst.objective, cert, pst, k
+        return self.certified
+
+    def finish(self, run: AdmmRun, polishing: bool) -> None:
+        """After the iterations: polish the last iterate (when polishing) and certify the
+        best point unless a checkpoint already did."""
+        R_final = rotations_from_state(run.state, self.ctx.operator.d, self.ctx.allow_reflections)
+        if polishing:
+            Rp, pst = self._polish(R_final)
+            if pst.objective < self.f:
+                self.R, self.f, self.polish, self.at = Rp, pst.objective, pst, run.iterations
+                self.cert = None
+        elif self.R is None:
+            self.R, self.at = R_final, run.iterations
+        if self.R is R_final or self.cert is None:
+            inv = self.polish.inverse if self.polish is not None else None
+            self.cert = self._certify(self.R, inv)
+
+
+def run(ctx: SolverContext) -> SolverRun:
+    """Registry entry "reg-admm": REG-ADMM from ctx.start; with ``polish``, the rounded
+    iterates are Newton-polished and certified at checkpoints (the start included) and the
+    iterations stop once one is certified. Returns checked rotations (see base.SolverRun)."""
+    op, o = ctx.operator, ctx.options
+    d, m = op.d, op.M
+    lam_max = ctx.spectrum.largest
+    rho0 = theorem4_rho(ctx.spectrum.lambda_d_plus_1(d), m, d) if o.rho == "auto" else float(o.rho)
+    state = state_from_rotations(ctx.start, rho=rho0)
+    best = _BestPoint(ctx)
+    t0 = time.perf_counter()
+    # Checkpoint 0: the start itself; REG-ADMM iterates only when it is not certified.
+    if o.polish and best.check(0, state):
+        admm = AdmmRun(state=state)
+    else:
+        admm = run_reg_admm(
+            op,
+            state,
+            dense=ctx.dense,
+            max_iter=o.max_iter,
+            tol=o.tol,
+            rho_mode="auto" if o.rho == "auto" else "fixed",
+            rho_max=max(lam_max, rho0),
+            checkpoint=best.check if o.polish else None,
+            checkpoints=_checkpoints(o.max_iter) if o.polish else None,
+            callback=ctx.callback,
+            lobpcg_steps=o.lobpcg_steps,
+            stall_window=o.stall_window,
+        )
+    t_iter = time.perf_counter() - t0 - best.t_polish - best.t_cert
+    certified_early = best.certified
+    if not certified_early:
+        best.finish(admm, o.polish)
+    pst = best.polish
+    if pst is not None:
+        pst.inverse = None  # free the factorization
+    stopped = "residuals" if admm.residuals_converged else "max_iter"
+    reason = "Theorem 4 bound" if o.rho == "auto" else "fixed"
+    return SolverRun(
+        rotations=best.R,
+        iterations=admm.iterations,
+        converged=bool(best.certified or admm.residuals_converged),
+        history=admm.history,
+        stats={
+            "residuals_converged": admm.residuals_converged,
+            "stopped_by": "certificate" if certified_early else stopped,
+            "polished_at_iteration": best.at,
+            "newton_steps": None if pst is None else pst.newton_steps,
+            "newton_cg_steps": None if pst is None else pst.cg_steps,
+            "eigensolver_steps": admm.eig_steps,
+        },
+        checked=True,
+        certificate=best.cert,
+        rho_initial=rho0,
+        rho_final=admm.state.rho if not admm.rho_changes else admm.rho_changes[-1]["rho"],
+        rho_history=[{"iteration": 0, "rho": rho0, "reason": reason}, *admm.rho_changes],
+        timings={"iterations": t_iter, "polish": best.t_polish, "certificate": best.t_cert},
+    )

@@ -20,10 +20,9 @@ import scipy.sparse.linalg as spla
 from mvreg.solver import pardiso
 
 # Above this many unknowns the sparse LU is not attempted (fill-in grows superlinearly;
-# measured here with nested dissection: 0.7 s at M = 10,000, 75 s and 232M nonzeros at
-# M = 100,000 for the (d + 1) M bordered system).
+# measurements behind these limits: docs/design/solver.md).
 DIRECT_MAX_UNKNOWNS = 800_000
-# With MKL PARDISO (9.3 s and ~3 GB for the 400k-unknown system at M = 100,000).
+# The same with MKL PARDISO.
 PARDISO_MAX_UNKNOWNS = 2_000_000
 NEWTON_PARDISO_MAX_UNKNOWNS = 1_000_000
 # The shift sigma of every shifted inverse (C + Lambda + sigma I)^{-1}, relative to
@@ -133,8 +132,7 @@ def newton_direct_feasible(op) -> bool:
     """Whether the exact Newton system (d(d-1)/2 + d unknowns per patch) is worth factorizing.
 
     Above this size the Newton CG is preconditioned by the cheaper (C + Lambda + sigma I)^{-1}
-    of the (d + 1)-unknowns-per-patch bordered system instead (at M = 100,000 the exact
-    Newton factor took 51 s and 261M nonzeros, the bordered one 10 s).
+    of the (d + 1)-unknowns-per-patch bordered system instead (docs/design/solver.md).
     """
     if not direct_feasible(op):
         return False

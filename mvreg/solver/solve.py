@@ -1,132 +1,123 @@
 """solve(): the one entry point of the global stage.
 
-build C -> spectrum (lambda_{d+1}, lambda_max, spectral init) -> solver iterations
--> (Newton polish + certificate at checkpoints) -> closed-form translations -> gauge.
+Takes a PatchProblem and a SolveConfig (or its fields as keyword overrides); returns a
+SolveResult: rotations, translations and node positions (patch 0 = world frame unless
+``gauge="none"``), the REG objective, the global-optimality certificate (unless
+``certify=False``), the solver's iteration history and statistics.
+
+    validate (SolveConfig, start) -> initialise (build C, spectrum, ill-posedness check,
+    spectral start) -> run the registered solver (mvreg.solver.base.SOLVERS) ->
+    polish / certify (unless the solver did) -> closed-form translations, gauge -> result.
+
+Guarantees: deterministic for the same problem, configuration and seed; one BLAS thread
+(recorded in ``stats["blas_threads"]``); raises ConfigError for bad settings and
+IllPosedError when lambda_{d+1}(C) ~ 0 (some rotation not determined by the data).
 """
 
 from __future__ import annotations
 
-import math
 import time
 from collections.abc import Callable
+from dataclasses import dataclass, field
 
 import numpy as np
 
+from mvreg.config.solve import SolveConfig, solve_config
 from mvreg.errors import ConfigError, IllPosedError
-from mvreg.solver.certificate import DEFAULT_GAP_TOL, certify
+from mvreg.solver.base import SOLVERS, IterationRecord, SolverContext, SolverRun, Spectrum
+from mvreg.solver.certificate import certify
 from mvreg.solver.operator import RegOperator
 from mvreg.solver.polish import polish
 from mvreg.solver.problem import PatchProblem
-from mvreg.solver.reg_admm import (
-    AdmmRun,
-    IterationRecord,
-    rotations_from_state,
-    run_reg_admm,
-    state_from_rotations,
-    theorem4_rho,
-)
 from mvreg.solver.result import SolveResult
-from mvreg.solver.solvers import GENERIC_SOLVERS, SolverContext
 from mvreg.solver.spectral import spectral_rotations, spectrum
 
-SOLVERS = ("reg-admm", *GENERIC_SOLVERS)
 # Dense (exact eigendecomposition per iteration) up to this M d; matrix-free above.
 DENSE_MAX_N = 900
 # lambda_{d+1}(C) / lambda_max(C) below this: some rotation is not determined.
 ILL_POSED_RATIO = 1e-10
-
-
-def _checkpoints(max_iter: int) -> set[int]:
-    """Iterations after which the rounded iterate is polished and certified: 1, 2, 5, 10, ..."""
-    pts, k = set(), 1
-    while k <= max_iter:
-        for b in (1, 2, 5):
-            if b * k <= max_iter:
-                pts.add(b * k)
-        k *= 10
-    pts.add(max_iter)
-    return pts
-
-
-# Multi-threaded OpenBLAS made dense eigensolvers ~10-30x slower on the 2-core machine
-# this was measured on; solve() runs with one BLAS thread (recorded in the result).
+# solve() runs with one BLAS thread (docs/design/solver.md).
 BLAS_THREADS = 1
 
 
-def solve(problem: PatchProblem, *args, **kwargs) -> SolveResult:
-    """Solve REG for a patch problem (see ``_solve`` for the arguments)."""
-    from threadpoolctl import threadpool_limits
-
-    with threadpool_limits(limits=BLAS_THREADS, user_api="blas"):
-        res = _solve(problem, *args, **kwargs)
-    res.stats["blas_threads"] = BLAS_THREADS
-    return res
-
-
-def _solve(
+def solve(
     problem: PatchProblem,
-    solver: str = "reg-admm",
+    config: SolveConfig | None = None,
     *,
-    method: str = "auto",
-    rho: str | float = "auto",
-    max_iter: int = 500,
-    tol: float = 1e-6,
-    gap_tol: float = DEFAULT_GAP_TOL,
-    allow_reflections: bool = False,
     init: np.ndarray | str = "spectral",
-    polish_steps: bool | None = None,
-    certify_result: bool = True,
-    gauge: str = "first",
     seed: int = 0,
     callback: Callable[[IterationRecord], None] | None = None,
     operator: RegOperator | None = None,
+    **overrides,
 ) -> SolveResult:
     """Solve REG for a patch problem: rotations, translations, nodes, certificate.
 
     Args:
         problem: the PatchProblem.
-        solver: "reg-admm" (default).
-        method: "dense" (exact eigendecompositions, small problems), "matrix-free"
-            (LOBPCG on an operator, memory linear in M) or "auto" (dense up to M d = 900).
-        rho: "auto" (Theorem 4, raised on oscillation) or a positive number.
-        max_iter: cap on REG-ADMM iterations.
-        tol: relative primal and dual residual tolerance of REG-ADMM.
-        gap_tol: certified when the relative suboptimality bound is below this.
-        allow_reflections: O(d) instead of SO(d).
+        config: a SolveConfig (default: defaults). ``overrides`` are its fields
+            (``solver="gpm"``, ``method="dense"``, ``allow_reflections=True``, ...) or the
+            shared iteration keys ``rho``, ``max_iter``, ``tol``, ``polish``, which apply to
+            every solver that has them (see mvreg.config.solve).
         init: "spectral" or rotations (M, d, d) R_world_patch to start from.
-        polish_steps: Newton-polish rounded iterates at checkpoints (stop when certified);
-            False runs plain eq. (7) to its residual tolerance (paper experiments).
-            Default: True for reg-admm, False for the other solvers (their own output is
-            certified as it is).
-        certify_result: compute the certificate (True in every user-facing path).
-        gauge: "first" (patch 0 = world frame) or "none".
         seed: seeds the random starts of the iterative eigensolvers.
-        callback: called with each IterationRecord.
+        callback: called with an IterationRecord after every iteration of the solver.
         operator: a prebuilt RegOperator for this problem (warm restarts).
     """
-    if solver not in SOLVERS:
-        raise ConfigError(f"unknown solver '{solver}' (choose from {', '.join(SOLVERS)})")
-    if method not in ("auto", "dense", "matrix-free"):
-        raise ConfigError(f"unknown method '{method}' (auto, dense or matrix-free)")
-    if max_iter < 1:
-        raise ConfigError(f"max_iter must be >= 1, got {max_iter}")
-    if not (0 < tol < 1):
-        raise ConfigError(f"tol must be in (0, 1), got {tol}")
-    if isinstance(rho, str) and rho != "auto":
-        raise ConfigError(f"rho must be 'auto' or a positive number, got '{rho}'")
-    if not isinstance(rho, str) and not (rho > 0 and math.isfinite(rho)):
-        raise ConfigError(f"rho must be 'auto' or a positive number, got {rho}")
+    from threadpoolctl import threadpool_limits
+
+    cfg = solve_config(config, **overrides)
+    with threadpool_limits(limits=BLAS_THREADS, user_api="blas"):
+        res = _solve(problem, cfg, init, seed, callback, operator)
+    res.stats["blas_threads"] = BLAS_THREADS
+    return res
+
+
+@dataclass
+class _Setup:
+    """What initialisation produced: the operator, its spectrum, the start, timings."""
+
+    op: RegOperator
+    dense: bool
+    spec: Spectrum
+    start: np.ndarray
+    t_start: float
+    timings: dict = field(default_factory=dict)
+
+
+def _solve(problem, cfg: SolveConfig, init, seed, callback, operator) -> SolveResult:
+    setup = _initialise(problem, cfg, init, seed, operator)
+    ctx = SolverContext(
+        operator=setup.op,
+        start=setup.start,
+        spectrum=setup.spec,
+        dense=setup.dense,
+        options=cfg.options(),
+        allow_reflections=cfg.allow_reflections,
+        seed=seed,
+        callback=callback,
+        certify=cfg.certify,
+        gap_tol=cfg.gap_tol,
+    )
+    t0 = time.perf_counter()
+    run = SOLVERS[cfg.solver].load()(ctx)
+    setup.timings["iterations"] = time.perf_counter() - t0
+    setup.timings.update(run.timings)
+    R, cert = _polish_and_certify(run, ctx, setup.timings)
+    R, t, z = _translations_and_gauge(setup.op, R, cfg.gauge, setup.timings)
+    setup.timings["total"] = time.perf_counter() - setup.t_start
+    return _result(problem, cfg, setup, run, R, t, z, cert)
+
+
+def _initialise(problem, cfg: SolveConfig, init, seed, operator) -> _Setup:
+    """Build C, its spectrum, check well-posedness, and the start rotations."""
     t_start = time.perf_counter()
-    timings = {}
     op = operator if operator is not None else RegOperator(problem)
     d, m = op.d, op.M
-    dense = method == "dense" or (method == "auto" and op.n <= DENSE_MAX_N)
-    timings["build_C"] = time.perf_counter() - t_start
-
+    dense = cfg.method == "dense" or (cfg.method == "auto" and op.n <= DENSE_MAX_N)
+    timings = {"build_C": time.perf_counter() - t_start}
     t0 = time.perf_counter()
     spec = spectrum(op, dense=dense, seed=seed)
-    lam_max = spec.largest
-    lam_d1 = float(spec.smallest[d]) if m > 1 else lam_max
+    lam_max, lam_d1 = spec.largest, spec.lambda_d_plus_1(d)
     if m > 1 and lam_d1 <= ILL_POSED_RATIO * lam_max:
         bad = [problem.patch_names[i] for i in problem.underdetermined_patches()]
         raise IllPosedError(
@@ -138,142 +129,33 @@ def _solve(
     if isinstance(init, str):
         if init != "spectral":
             raise ConfigError(f"unknown init '{init}' (spectral, or rotations)")
-        R0 = spectral_rotations(spec, d, allow_reflections)
+        R0 = spectral_rotations(spec, d, cfg.allow_reflections)
     else:
         R0 = np.asarray(init, dtype=np.float64)
         if R0.shape != (m, d, d) or not np.all(np.isfinite(R0)):
             raise ConfigError(f"init rotations must have shape {(m, d, d)} and be finite")
-
     timings["init"] = time.perf_counter() - t0
+    return _Setup(op, dense, spec, R0, t_start, timings)
 
-    if solver != "reg-admm":
-        return _solve_generic(
-            problem,
-            op,
-            solver,
-            R0,
-            spec,
-            dense,
-            timings,
-            t_start,
-            SolverContext(dense, max_iter, tol, allow_reflections, spec, seed, callback, rho),
-            polish_steps=polish_steps if polish_steps is not None else False,
-            certify_result=certify_result,
-            gap_tol=gap_tol,
-            gauge=gauge,
-        )
-    polish_steps = True if polish_steps is None else polish_steps
-    rho0 = theorem4_rho(lam_d1, m, d) if rho == "auto" else float(rho)
-    state = state_from_rotations(R0, rho=rho0)
-    best = {"R": None, "f": np.inf, "cert": None, "polish": None, "at": None}
-    t_polish = [0.0]
-    t_cert = [0.0]
 
-    def check(k, st) -> bool:
-        R = rotations_from_state(st, d, allow_reflections)
-        t1 = time.perf_counter()
-        Rp, pst = polish(op, R, lam_max, allow_reflections)
-        t_polish[0] += time.perf_counter() - t1
-        if pst.objective >= best["f"] - 1e-12 * max(abs(best["f"]), 1e-300):
-            return False  # same stationary point as before: already checked
-        t2 = time.perf_counter()
-        cert = (
-            certify(op, Rp, lam_max, dense, gap_tol, seed, inverse=pst.inverse)
-            if certify_result
-            else None
-        )
-        pst.inverse = None  # free the factorization
-        t_cert[0] += time.perf_counter() - t2
-        best.update(R=Rp, f=pst.objective, cert=cert, polish=pst, at=k)
-        return bool(cert is not None and cert.certified)
-
-    # Checkpoint 0: the start itself. In the low-noise regime the spectral estimate lies in
-    # the basin of the global optimum and is certified after a few Newton steps; REG-ADMM
-    # iterates only when it is not.
+def _polish_and_certify(run: SolverRun, ctx: SolverContext, timings: dict):
+    """(rotations, certificate): the solver's own when it checked them, else its rotations
+    Newton-polished (when its options say so) and certified (when asked)."""
+    if run.checked:
+        return run.rotations, run.certificate
+    op, lam_max, R = ctx.operator, ctx.spectrum.largest, run.rotations
+    if ctx.options.polish:
+        t0 = time.perf_counter()
+        R, pst = polish(op, R, lam_max, ctx.allow_reflections)
+        timings["polish"] = time.perf_counter() - t0
+        run.stats.update(newton_steps=pst.newton_steps, newton_cg_steps=pst.cg_steps)
     t0 = time.perf_counter()
-    if polish_steps and check(0, state):
-        run = AdmmRun(state=state)
-    else:
-        run = run_reg_admm(
-            op,
-            state,
-            dense=dense,
-            max_iter=max_iter,
-            tol=tol,
-            rho_mode="auto" if rho == "auto" else "fixed",
-            rho_max=max(lam_max, rho0),
-            checkpoint=check if polish_steps else None,
-            checkpoints=_checkpoints(max_iter) if polish_steps else None,
-            callback=callback,
-        )
-    timings["iterations"] = time.perf_counter() - t0 - t_polish[0] - t_cert[0]
-    certified_early = best["cert"] is not None and best["cert"].certified
-    if not certified_early:
-        R_final = rotations_from_state(run.state, d, allow_reflections)
-        if polish_steps:
-            t1 = time.perf_counter()
-            Rp, pst = polish(op, R_final, lam_max, allow_reflections)
-            t_polish[0] += time.perf_counter() - t1
-            if pst.objective < best["f"]:
-                best.update(R=Rp, f=pst.objective, polish=pst, at=run.iterations, cert=None)
-        elif best["R"] is None:
-            best.update(R=R_final, at=run.iterations)
-        if best["R"] is R_final or best["cert"] is None:
-            t2 = time.perf_counter()
-            inv = best["polish"].inverse if best["polish"] is not None else None
-            best["cert"] = (
-                certify(op, best["R"], lam_max, dense, gap_tol, seed, inverse=inv)
-                if certify_result
-                else None
-            )
-            t_cert[0] += time.perf_counter() - t2
-    if best["polish"] is not None:
-        best["polish"].inverse = None  # free the factorization
-    timings["polish"] = t_polish[0]
-    timings["certificate"] = t_cert[0]
-
-    R, t, z = _finish(op, best["R"], gauge, timings, t_start)
-    cert = best["cert"]
-    objective = op.residual(R, t, z)
-    pst = best["polish"]
-    return SolveResult(
-        rotations=R,
-        translations=t,
-        nodes=z,
-        patch_names=list(problem.patch_names),
-        objective=objective,
-        iterations=run.iterations,
-        converged=bool((cert is not None and cert.certified) or run.residuals_converged),
-        certificate=cert,
-        solver=solver,
-        method="dense" if dense else "matrix-free",
-        rho_initial=rho0,
-        rho_final=run.state.rho if not run.rho_changes else run.rho_changes[-1]["rho"],
-        rho_history=[
-            {"iteration": 0, "rho": rho0, "reason": "Theorem 4 bound" if rho == "auto" else "fixed"}
-        ]
-        + run.rho_changes,
-        history=[r.__dict__ for r in run.history],
-        timings=timings,
-        stats={
-            "lambda_d_plus_1": lam_d1,
-            "lambda_max": lam_max,
-            "spectral_gap_ratio": lam_d1 / lam_max,
-            "residuals_converged": run.residuals_converged,
-            "stopped_by": "certificate"
-            if certified_early
-            else ("residuals" if run.residuals_converged else "max_iter"),
-            "polished_at_iteration": best["at"],
-            "newton_steps": None if pst is None else pst.newton_steps,
-            "newton_cg_steps": None if pst is None else pst.cg_steps,
-            "eigensolver_steps": run.eig_steps,
-            "C_products": op.num_matvecs,
-            "laplacian": op.lap.method,
-        },
-    )
+    cert = certify(op, R, lam_max, ctx.dense, ctx.gap_tol, ctx.seed) if ctx.certify else None
+    timings["certificate"] = time.perf_counter() - t0
+    return R, cert
 
 
-def _finish(op, R, gauge, timings, t_start):
+def _translations_and_gauge(op: RegOperator, R: np.ndarray, gauge: str, timings: dict):
     """Closed-form translations and nodes for R, then the gauge (patch 0 = world)."""
     t0 = time.perf_counter()
     t, z = op.translations(R)
@@ -283,48 +165,12 @@ def _finish(op, R, gauge, timings, t_start):
         t = (t - t0v) @ r0
         z = (z - t0v) @ r0
     timings["translations"] = time.perf_counter() - t0
-    timings["total"] = time.perf_counter() - t_start
     return R, t, z
 
 
-def _solve_generic(
-    problem,
-    op,
-    solver,
-    R0,
-    spec,
-    dense,
-    timings,
-    t_start,
-    ctx,
-    *,
-    polish_steps,
-    certify_result,
-    gap_tol,
-    gauge,
-) -> SolveResult:
-    t0 = time.perf_counter()
-    run = GENERIC_SOLVERS[solver](op, R0, ctx)
-    timings["iterations"] = time.perf_counter() - t0
-    R = run.rotations
-    stats = dict(run.stats)
-    if polish_steps:
-        t0 = time.perf_counter()
-        R, pst = polish(op, R, spec.largest, ctx.allow_reflections)
-        timings["polish"] = time.perf_counter() - t0
-        stats.update(newton_steps=pst.newton_steps, newton_cg_steps=pst.cg_steps)
-    t0 = time.perf_counter()
-    cert = certify(op, R, spec.largest, dense, gap_tol, ctx.seed) if certify_result else None
-    timings["certificate"] = time.perf_counter() - t0
-    R, t, z = _finish(op, R, gauge, timings, t_start)
-    lam_d1 = float(spec.smallest[op.d]) if op.M > 1 else spec.largest
-    stats.update(
-        lambda_d_plus_1=lam_d1,
-        lambda_max=spec.largest,
-        spectral_gap_ratio=lam_d1 / spec.largest,
-        C_products=op.num_matvecs,
-        laplacian=op.lap.method,
-    )
+def _result(problem, cfg: SolveConfig, setup: _Setup, run: SolverRun, R, t, z, cert):
+    op, spec = setup.op, setup.spec
+    lam_d1 = spec.lambda_d_plus_1(op.d)
     return SolveResult(
         rotations=R,
         translations=t,
@@ -334,9 +180,19 @@ def _solve_generic(
         iterations=run.iterations,
         converged=bool(run.converged),
         certificate=cert,
-        solver=solver,
-        method="dense" if dense else "matrix-free",
-        history=[h if isinstance(h, dict) else h.__dict__ for h in run.history],
-        timings=timings,
-        stats=stats,
+        solver=cfg.solver,
+        method="dense" if setup.dense else "matrix-free",
+        rho_initial=run.rho_initial,
+        rho_final=run.rho_final,
+        rho_history=run.rho_history,
+        history=[r.to_dict() for r in run.history],
+        timings=setup.timings,
+        stats={
+            "lambda_d_plus_1": lam_d1,
+            "lambda_max": spec.largest,
+            "spectral_gap_ratio": lam_d1 / spec.largest,
+            **run.stats,
+            "C_products": op.num_matvecs,
+            "laplacian": op.lap.method,
+        },
     )

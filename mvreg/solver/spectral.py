@@ -1,29 +1,26 @@
-"""Spectral (eigenvector) estimator, paper 001 section 2, for d x d blocks.
+"""Spectral (eigenvector) estimator, paper 001 section 2, for d x d blocks; the spectrum of C.
 
-The d eigenvectors of the d smallest eigenvalues of C, scaled by sqrt(M) and rounded
-blockwise to SO(d) / O(d). Also returns lambda_{d+1}(C) (Theorem 4's rho, well-posedness)
-and an estimate of lambda_max(C).
+``spectrum(op, dense, seed)``: the d+1 smallest eigenpairs of C and an upper bound on
+lambda_max(C) (exact when dense, 1.01 x the Lanczos estimate matrix-free), as a Spectrum.
+``spectral_rotations(spec, d)``: the d eigenvectors of the d smallest eigenvalues, scaled
+by sqrt(M) and rounded blockwise to SO(d) / O(d) (a global reflection is a gauge).
+
+As a registered solver (``run``): the start rotations, which ``solve()`` computes this way
+by default; no iterations, no history. solve() then certifies them (and Newton-polishes
+them first with ``solve.spectral.polish``).
 """
 
 from __future__ import annotations
-
-from dataclasses import dataclass
 
 import numpy as np
 import scipy.linalg as sla
 import scipy.sparse.linalg as spla
 
+from mvreg.solver.base import SolverContext, SolverRun, Spectrum
 from mvreg.solver.blocks import round_to_rotations
 from mvreg.solver.shift_invert import SHIFT, ShiftedInverse, direct_feasible
 
-
-@dataclass
-class Spectrum:
-    """The d+1 smallest eigenvalues of C (ascending), their vectors (n, d+1), lambda_max."""
-
-    smallest: np.ndarray
-    vectors: np.ndarray
-    largest: float
+__all__ = ["Spectrum", "lambda_max", "run", "spectral_rotations", "spectrum"]
 
 
 def lambda_max(op, dense: bool, seed: int = 0) -> float:
@@ -76,3 +73,8 @@ def spectral_rotations(spec: Spectrum, d: int, allow_reflections: bool = False) 
     n = spec.vectors.shape[0]
     m = n // d
     return round_to_rotations(np.sqrt(m) * spec.vectors[:, :d], d, allow_reflections)
+
+
+def run(ctx: SolverContext) -> SolverRun:
+    """Registry entry "spectral": the start rotations themselves (spectral by default)."""
+    return SolverRun(rotations=ctx.start, iterations=0, converged=True)

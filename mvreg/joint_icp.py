@@ -29,6 +29,7 @@ from dataclasses import dataclass, replace
 import numpy as np
 
 from mvreg.config import RegisterConfig
+from mvreg.executor import single_threaded_blas
 from mvreg.geometry import (
     invert_transform,
     rotation_angle_deg,
@@ -36,7 +37,6 @@ from mvreg.geometry import (
     transform_points,
 )
 from mvreg.pairwise import PreprocessedScan
-from mvreg.pairwise._threads import single_threaded_blas
 from mvreg.pairwise.align import nearest_with_normals
 from mvreg.refine import overlapping_pairs, robust_weights
 

@@ -161,9 +161,9 @@ def register(
     pairs = candidate_pairs(pre, cfg.pairs)
     prog.stage("pairs", len(pairs))
     results = align_pairs(
-        pre, pairs, cfg.align, cfg.seed, progress=lambda _r: prog.advance(), workers=cfg.workers
+        pre, pairs, cfg.align, cfg.seed, progress=lambda _r: prog.advance(), executor=cfg.workers
     )
-    results = connect_unconnected(pre, results, cfg.align, cfg.search, workers=cfg.workers)
+    results = connect_unconnected(pre, results, cfg.align, cfg.search, executor=cfg.workers)
     if pair_hook is not None:
         results = pair_hook(pre, results)
     timed("pairwise")
@@ -177,7 +177,7 @@ def register(
 
     dense_levels = prepare_dense_levels(scans, pre, cfg)  # in the background meanwhile
     w0, robust_log = _cycle_check(pre, results, cfg)
-    tracks = build_tracks(pre, results, cfg.tracks, pair_weights=w0, workers=cfg.workers)
+    tracks = build_tracks(pre, results, cfg.tracks, pair_weights=w0, executor=cfg.workers)
     sol: GlobalSolution | None = None
     weights = np.zeros(len(tracks.pairs))
     refine_log, joint_log = [], None

@@ -33,9 +33,9 @@ from functools import partial
 import numpy as np
 
 from mvreg.config import RegisterConfig, RobustConfig
+from mvreg.executor import single_threaded_blas
 from mvreg.geometry import invert_transform, transform_points
 from mvreg.pairwise import PreprocessedScan, Tracks, mutual_correspondences
-from mvreg.pairwise._threads import single_threaded_blas
 from mvreg.pairwise.align import icp_point_to_plane
 from mvreg.pairwise.tracks import tracks_from_correspondences
 from mvreg.solver import SolveResult, solve

@@ -80,11 +80,11 @@ from mvreg.config.preprocess import PreprocessConfig
 from mvreg.config.sequence import SequenceConfig
 from mvreg.config.tracks import TracksConfig
 from mvreg.errors import ConfigError, InputError
+from mvreg.executor import single_threaded_blas
 from mvreg.geometry import invert_transform, rotation_angle_deg, transform_points
 from mvreg.io.loaders import Scan
 from mvreg.joint_icp import joint_icp
 from mvreg.metrics import pose_errors
-from mvreg.pairwise._threads import single_threaded_blas
 from mvreg.pairwise.align import (
     PairResult,
     _decide,

@@ -80,7 +80,6 @@ from __future__ import annotations
 
 import time
 from collections.abc import Callable, Sequence
-from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
 from typing import Literal
 
@@ -88,8 +87,8 @@ import numpy as np
 from scipy.spatial import cKDTree
 
 from mvreg.config.align import AlignConfig
+from mvreg.executor import Executor, make_executor, single_threaded_blas
 from mvreg.geometry import invert_transform, rotation_from_vector, transform_points
-from mvreg.pairwise._threads import single_threaded_blas
 from mvreg.pairwise.preprocess import PreprocessedScan
 
 
@@ -798,7 +797,7 @@ def align_pairs(
     cfg: AlignConfig | None = None,
     seed: int = 0,
     progress: Callable[[PairResult], None] | None = None,
-    workers: int = 2,
+    executor: Executor | int = 2,
 ) -> list[PairResult]:
     """Align every candidate pair; results in the order of ``pairs``.
 
@@ -820,21 +819,9 @@ def align_pairs(
         i, j = pair
         return align_pair(pre[i], pre[j], cfg, pair_seed(seed, i, j), i=i, j=j, feature_basis=basis)
 
-    workers = 1 if cfg.ransac_backend == "open3d" else workers
-    results: list[PairResult] = []
-    # Limit BLAS here, before any worker starts: the limit is process-wide.
-    with single_threaded_blas():
-        if workers == 1 or len(pairs) <= 1:
-            for pair in pairs:
-                results.append(run(pair))
-                if progress is not None:
-                    progress(results[-1])
-        else:
-            with ThreadPoolExecutor(max_workers=workers) as pool:
-                for res in pool.map(run, pairs):
-                    results.append(res)
-                    if progress is not None:
-                        progress(res)
+    # Open3D's RANSAC is reproducible on one thread only.
+    executor = make_executor(1 if cfg.ransac_backend == "open3d" else executor)
+    results = executor.map(run, pairs, progress)
     reject_relative_outliers(results, cfg)
     return results
 

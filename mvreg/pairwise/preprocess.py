@@ -46,7 +46,6 @@ approximation) and pairwise alignment can check free-space consistency (see
 from __future__ import annotations
 
 from collections.abc import Callable, Sequence
-from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
 from typing import TYPE_CHECKING
 
@@ -55,7 +54,7 @@ from scipy.spatial import cKDTree
 
 from mvreg.config.preprocess import PreprocessConfig
 from mvreg.errors import ConfigError
-from mvreg.pairwise._threads import single_threaded_blas
+from mvreg.executor import Executor, make_executor, single_threaded_blas
 
 if TYPE_CHECKING:
     from mvreg.io.loaders import Scan
@@ -181,8 +180,14 @@ def median_spacing(points: np.ndarray, max_samples: int = 4000) -> float:
     return float(np.median(d[:, 1]))
 
 
-def derive_voxel_size(scans: list[Scan], cfg: PreprocessConfig | None = None) -> float:
-    """Feature-level voxel size from the data (see the module docstring). Data units."""
+def derive_voxel_size(
+    scans: list[Scan], cfg: PreprocessConfig | None = None, executor: Executor | int = 2
+) -> float:
+    """Feature-level voxel size from the data (see the module docstring). Data units.
+
+    The scans are measured on ``executor`` (an int: that many threads); the result does
+    not depend on it.
+    """
     cfg = cfg or PreprocessConfig()
     if cfg.voxel_size is not None:
         return float(cfg.voxel_size)
@@ -199,8 +204,8 @@ def derive_voxel_size(scans: list[Scan], cfg: PreprocessConfig | None = None) ->
             voxel *= np.sqrt(_voxel_count(pts, voxel) / target)
         return voxel, spacing
 
-    with ThreadPoolExecutor(2) as pool:  # the same numbers as one by one
-        sizes, spacings = zip(*pool.map(one, [scan.points for scan in scans]), strict=True)
+    measured = make_executor(executor).map(one, [scan.points for scan in scans])
+    sizes, spacings = zip(*measured, strict=True)
     voxel = max(float(np.median(sizes)), cfg.min_voxel_spacings * float(np.median(spacings)))
     if not np.isfinite(voxel) or voxel <= 0:
         raise ConfigError("could not derive a voxel size from the data (degenerate scans)")
@@ -245,20 +250,17 @@ def preprocess_all(
     scans: Sequence[Scan],
     voxel_size: float,
     cfg: PreprocessConfig | None = None,
-    workers: int = 2,
+    executor: Executor | int = 2,
     progress: Callable[[PreprocessedScan], None] | None = None,
 ) -> list[PreprocessedScan]:
-    """:func:`preprocess` of every scan on ``workers`` threads; the same result as one by
-    one, in the order of ``scans``. ``progress`` is called as each scan is done."""
+    """:func:`preprocess` of every scan on ``executor`` (an int: that many threads); the
+    same result as one by one, in the order of ``scans``. ``progress`` is called (from
+    the calling thread) as each scan is done, in that order."""
     cfg = cfg or PreprocessConfig()
     _check_voxel(voxel_size)
-    out = []
-    with single_threaded_blas(), ThreadPoolExecutor(max(1, workers)) as pool:
-        for p in pool.map(lambda s: _preprocess(s, float(voxel_size), cfg), scans):
-            out.append(p)
-            if progress is not None:
-                progress(p)
-    return out
+    return make_executor(executor).map(
+        lambda s: _preprocess(s, float(voxel_size), cfg), scans, progress
+    )
 
 
 def _preprocess(scan: Scan, v: float, cfg: PreprocessConfig) -> PreprocessedScan:

@@ -26,13 +26,12 @@ from __future__ import annotations
 
 import time
 from collections.abc import Callable, Sequence
-from concurrent.futures import ThreadPoolExecutor
 
 import numpy as np
 from scipy.spatial.transform import Rotation
 
 from mvreg.config.align import AlignConfig, SearchConfig
-from mvreg.pairwise._threads import single_threaded_blas
+from mvreg.executor import Executor, make_executor
 from mvreg.pairwise.align import (
     PairResult,
     _decide,
@@ -63,7 +62,7 @@ def search_pair(
     search: SearchConfig | None = None,
     i: int = 0,
     j: int = 1,
-    workers: int = 2,
+    executor: Executor | int = 2,
 ) -> PairResult:
     """Align j to i from every start rotation (module doc); accepted or not."""
     cfg, search = cfg or AlignConfig(), search or SearchConfig()
@@ -86,10 +85,8 @@ def search_pair(
         scores = score_alignment(pre_i, pre_j, T, cfg, level="feature")
         return T if not _decide(scores, cfg, slack=cfg.coarse_gate_slack) else None
 
-    with single_threaded_blas(), ThreadPoolExecutor(max_workers=workers) as pool:
-        survivors = [
-            T for T in pool.map(screen, rotation_starts(search.offset_deg)) if T is not None
-        ]
+    screened = make_executor(executor).map(screen, rotation_starts(search.offset_deg))
+    survivors = [T for T in screened if T is not None]
     distinct: list[np.ndarray] = []
     for T in survivors:
         if not any(_same_pose(T, K, v, cj, radius) for K in distinct):
@@ -127,7 +124,7 @@ def connect_unconnected(
     cfg: AlignConfig | None = None,
     search: SearchConfig | None = None,
     progress: Callable[[PairResult], None] | None = None,
-    workers: int = 2,
+    executor: Executor | int = 2,
 ) -> list[PairResult]:
     """``results`` with searched pairs for scans outside the largest connected set.
 
@@ -152,7 +149,7 @@ def connect_unconnected(
         order = inside[np.argsort(np.linalg.norm(desc[inside] - desc[a], axis=1), kind="stable")]
         for b in order[: search.partners]:
             i, j = (int(min(a, b)), int(max(a, b)))
-            res = search_pair(pre[i], pre[j], cfg, search, i=i, j=j, workers=workers)
+            res = search_pair(pre[i], pre[j], cfg, search, i=i, j=j, executor=executor)
             if (i, j) in index:
                 if res.accepted or not results[index[(i, j)]].accepted:
                     results[index[(i, j)]] = res

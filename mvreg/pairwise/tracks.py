@@ -24,7 +24,6 @@ that link it.
 from __future__ import annotations
 
 from collections.abc import Sequence
-from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -32,8 +31,8 @@ import scipy.sparse as sp
 from scipy.sparse.csgraph import connected_components
 
 from mvreg.config.tracks import TracksConfig
+from mvreg.executor import Executor, make_executor
 from mvreg.geometry import transform_points
-from mvreg.pairwise._threads import single_threaded_blas
 from mvreg.pairwise.align import PairResult
 from mvreg.pairwise.correspondences import mutual_correspondences
 from mvreg.pairwise.preprocess import PreprocessedScan
@@ -138,12 +137,13 @@ def build_tracks(
     results: Sequence[PairResult],
     cfg: TracksConfig | None = None,
     pair_weights: Sequence[float] | None = None,
-    workers: int = 2,
+    executor: Executor | int = 2,
 ) -> Tracks:
     """Correspondences of the accepted pairs among ``results`` -> :class:`Tracks`.
 
     ``pair_weights`` (one per accepted result, default 1) weight the observations. The
-    pairs are matched on ``workers`` threads (KD-tree queries release the GIL).
+    pairs are matched on ``executor`` (an int: that many threads; KD-tree queries release
+    the GIL); the result does not depend on it.
     """
     cfg = cfg or TracksConfig()
     accepted = [r for r in results if r.accepted]
@@ -156,8 +156,7 @@ def build_tracks(
     for r in accepted:  # build the KD-trees once, before the threads share them
         pre[r.i].fine_tree()
         pre[r.j].fine_tree()
-    with single_threaded_blas(), ThreadPoolExecutor(max(1, workers)) as pool:
-        matched = list(pool.map(match, accepted))
+    matched = make_executor(executor).map(match, accepted)
     corr = [m[0] for m in matched]
     distances = [m[1] for m in matched]
     pairs = np.array([(r.i, r.j) for r in accepted], dtype=np.int64).reshape(-1, 2)

@@ -37,7 +37,7 @@ from mvreg.geometry import (
     transform_points,
 )
 from mvreg.pairwise import PreprocessedScan
-from mvreg.pairwise.align import nearest_with_normals
+from mvreg.pairwise.icp import nearest_with_normals
 from mvreg.refine import overlapping_pairs, robust_weights
 
 

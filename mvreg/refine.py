@@ -36,7 +36,7 @@ from mvreg.config import RegisterConfig, RobustConfig
 from mvreg.executor import single_threaded_blas
 from mvreg.geometry import invert_transform, transform_points
 from mvreg.pairwise import PreprocessedScan, Tracks, mutual_correspondences
-from mvreg.pairwise.align import icp_point_to_plane
+from mvreg.pairwise.icp import icp_point_to_plane
 from mvreg.pairwise.tracks import tracks_from_correspondences
 from mvreg.solver import SolveResult, solve
 from mvreg.solver.reg_admm import IterationRecord

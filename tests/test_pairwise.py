@@ -27,13 +27,7 @@ from mvreg.pairwise import (
     score_alignment,
     tracks_from_correspondences,
 )
-from mvreg.pairwise.align import (
-    PairResult,
-    free_space_violation,
-    pair_seed,
-    reject_relative_outliers,
-    unseen_violation,
-)
+from mvreg.pairwise.align import reject_relative_outliers
 from mvreg.pairwise.preprocess import (
     outlier_mask,
     preprocess,
@@ -41,6 +35,8 @@ from mvreg.pairwise.preprocess import (
     view_axis_occlusion,
     view_direction,
 )
+from mvreg.pairwise.result import PairResult, pair_seed
+from mvreg.pairwise.scoring import free_space_violation, unseen_violation
 
 # ----------------------------------------------------------------------------- helpers
 

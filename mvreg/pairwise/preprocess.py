@@ -46,7 +46,7 @@ approximation) and pairwise alignment can check free-space consistency (see
 from __future__ import annotations
 
 from collections.abc import Callable, Sequence
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from typing import TYPE_CHECKING
 
 import numpy as np
@@ -55,6 +55,7 @@ from scipy.spatial import cKDTree
 from mvreg.config.preprocess import PreprocessConfig
 from mvreg.errors import ConfigError
 from mvreg.executor import Executor, make_executor, single_threaded_blas
+from mvreg.scales import Scales
 
 if TYPE_CHECKING:
     from mvreg.io.loaders import Scan
@@ -225,9 +226,41 @@ def _orient_like(normals: np.ndarray, points: np.ndarray, ref_points, ref_normal
     return normals * sign[:, None]
 
 
-def _check_voxel(voxel_size: float) -> None:
-    if not voxel_size > 0:
+def check_voxel_size(voxel_size: float) -> float:
+    """``voxel_size`` as a float; ConfigError unless it is finite and > 0. The one check
+    of a voxel size, given or derived."""
+    v = float(voxel_size)
+    if not (np.isfinite(v) and v > 0):
         raise ConfigError(f"voxel_size must be > 0, got {voxel_size}")
+    return v
+
+
+def derive_scales(
+    scans: Sequence[Scan], cfg: PreprocessConfig | None = None, executor: Executor | int = 2
+) -> Scales:
+    """The run's :class:`~mvreg.scales.Scales` before preprocessing: the feature voxel
+    (``cfg.voxel_size`` when given, else :func:`derive_voxel_size`), the fine voxel
+    (``fine_voxel_ratio`` times it) and where the voxel came from; ``noise`` 0 until
+    :func:`with_noise`. ConfigError for a voxel that is not finite and > 0."""
+    cfg = cfg or PreprocessConfig()
+    voxel = check_voxel_size(derive_voxel_size(scans, cfg, executor))
+    return Scales(
+        voxel=voxel,
+        fine_voxel=cfg.fine_voxel_ratio * voxel,
+        voxel_source="given" if cfg.voxel_size is not None else "derived",
+    )
+
+
+def with_noise(scales: Scales, pre: Sequence[PreprocessedScan]) -> Scales:
+    """``scales`` with ``noise`` = the median of the preprocessed scans' own noise
+    estimates (0 without scans). Per-scan noise stays on each scan."""
+    return replace(scales, noise=float(np.median([p.noise for p in pre])) if pre else 0.0)
+
+
+def scan_scales(pre: PreprocessedScan) -> Scales:
+    """The voxel sizes ``pre`` was preprocessed at, for callers that pass no run-wide
+    :class:`~mvreg.scales.Scales` (every scan of a run has the same ones)."""
+    return Scales(voxel=pre.voxel_size, fine_voxel=pre.fine_voxel_size)
 
 
 def preprocess(
@@ -241,9 +274,9 @@ def preprocess(
             every scan of a run, so that features are comparable).
     """
     cfg = cfg or PreprocessConfig()
-    _check_voxel(voxel_size)
+    voxel_size = check_voxel_size(voxel_size)
     with single_threaded_blas():
-        return _preprocess(scan, float(voxel_size), cfg)
+        return _preprocess(scan, voxel_size, cfg)
 
 
 def preprocess_all(
@@ -257,10 +290,8 @@ def preprocess_all(
     same result as one by one, in the order of ``scans``. ``progress`` is called (from
     the calling thread) as each scan is done, in that order."""
     cfg = cfg or PreprocessConfig()
-    _check_voxel(voxel_size)
-    return make_executor(executor).map(
-        lambda s: _preprocess(s, float(voxel_size), cfg), scans, progress
-    )
+    voxel_size = check_voxel_size(voxel_size)
+    return make_executor(executor).map(lambda s: _preprocess(s, voxel_size, cfg), scans, progress)
 
 
 def _preprocess(scan: Scan, v: float, cfg: PreprocessConfig) -> PreprocessedScan:
@@ -318,7 +349,7 @@ def _preprocess(scan: Scan, v: float, cfg: PreprocessConfig) -> PreprocessedScan
         fine_voxel_size=fine_v,
         fine_points=fine_pts,
         fine_normals=fine_nrm,
-        noise=max(_plane_noise(fine_pts, fine_nrm), cfg.noise_floor_fine_voxels * fine_v),
+        noise=max(plane_noise(fine_pts, fine_nrm), cfg.noise_floor_fine_voxels * fine_v),
         orientation=orientation,
         num_raw_points=scan.num_points,
         num_outliers_removed=int(np.count_nonzero(~keep)) if cfg.outlier_min_cell_share else 0,
@@ -461,7 +492,7 @@ def _rotation_from_z(d: np.ndarray) -> np.ndarray:
     return np.eye(3) + k + k @ k / (1.0 + c)
 
 
-def _plane_noise(points: np.ndarray, normals: np.ndarray) -> float:
+def plane_noise(points: np.ndarray, normals: np.ndarray) -> float:
     """Median |n_p . (q - p)| over points p with nearest other point q (same scan)."""
     _, idx = cKDTree(points).query(points, k=2)
     q = points[idx[:, 1]]

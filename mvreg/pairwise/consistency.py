@@ -1,31 +1,29 @@
 """Cycle consistency of the accepted pairs, before the global solve.
 
+Takes the preprocessed scans, the pair results and a threshold ``max_voxels`` (in
+feature voxels); returns the accepted pairs to set aside (indices into the results, in
+the order they were set aside, with the evidence). Deterministic. A pair with no cycles
+is never set aside, and a pair is set aside only while it is contradicted by more
+cycles than confirm it.
+
 Each accepted pair (i, j) claims a relative pose ``T_i_j``. Around a cycle of pairs the
 claimed poses must compose to the identity; a wrong pair (a flip of a near-symmetric
 shape, a slide along a face) breaks every cycle it is part of, while a right pair closes
-the cycles made of right pairs. The global solve with robust re-weighting is meant to sort
-this out too, but it starts from the solution *with* the wrong pairs; on the teapot
-(seed 2, 18 right and 3 wrong accepted pairs, 54 to 105 degrees off) the re-weighting
-ended with the right pairs at weight 0 and every scan 2 to 26 degrees off.
-
-Here every accepted pair is checked against the cycles of length 3 and 4 it closes with
-other accepted pairs. A cycle's discrepancy is the median distance by which going round
-it moves the points of the pair's scan j, in feature voxels; it is consistent below
-``max_voxels``. Repeatedly, the pair with the most inconsistent cycles in excess of its
-consistent ones is set aside and the counts are redone, until no pair is contradicted by
-more cycles than confirm it. A pair with no cycles is kept.
+the cycles made of right pairs. Every accepted pair is checked against the cycles of
+length 3 and 4 it closes with other accepted pairs. A cycle's discrepancy is the median
+distance by which going round it moves the points of the pair's scan j, in feature
+voxels; it is consistent below ``max_voxels``. Repeatedly, the pair with the most
+inconsistent cycles in excess of its consistent ones is set aside and the counts are
+redone, until no pair is contradicted by more cycles than confirm it.
 
 Counting alone cannot tell the wrong pair of a cycle from the right ones when cycles are
-few: in a triangle with one wrong pair all three have one inconsistent cycle; on the
-teapot (seed 2, 10% outliers) a flip and a right pair shared the same two cycles and the
-right one, with less overlap, was set aside, which flipped four scans. So with the scans'
-geometry at hand (``align_cfg``), each contradicted pair is also tested against the
-poses its inconsistent cycles imply for it: a pair whose own pose is worse supported by
-the two scans' points than some cycle's pose (mutual correspondences, discounted by the
-free-space and unseen tests, :func:`~mvreg.pairwise.align.geometric_support`), or not
-supported at all, is wrong on the evidence of both the cycle and the data, and the one
-with the largest margin is set aside first. Only when no contradicted pair is beaten that
-way does the count decide (ties: the smaller overlap first).
+few, so with the scans' geometry at hand (``align_cfg``) each contradicted pair is also
+tested against the poses its inconsistent cycles imply for it: a pair whose own pose is
+worse supported by the two scans' points than some cycle's pose
+(:func:`~mvreg.pairwise.decision.geometric_support`), or not supported at all, is wrong
+on the evidence of both the cycle and the data, and the one with the largest margin is
+set aside first. Only when no contradicted pair is beaten that way does the count decide
+(ties: the smaller overlap first). Why: ``docs/design/pairwise.md``.
 """
 
 from __future__ import annotations

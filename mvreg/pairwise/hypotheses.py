@@ -207,15 +207,9 @@ def _rerank(hypotheses, src, dst, pre_i, pre_j, cfg: AlignConfig, voxel: float):
     return kept, fits
 
 
-def ransac_open3d(
-    pre_i: PreprocessedScan,
-    pre_j: PreprocessedScan,
-    cfg: AlignConfig,
-    seed: int,
-    basis: FeatureBasis | None,
-    voxel: float,
-) -> tuple[np.ndarray, dict]:
-    """Open3D's feature RANSAC (``basis`` unused: it matches the full descriptors)."""
+def ransac_open3d(pre_i, pre_j, cfg: AlignConfig, seed: int, basis, voxel: float):
+    """Open3D's feature RANSAC: like :func:`ransac_numpy` (same arguments and (T, stats)),
+    but ``basis`` is unused (it matches the full descriptors) and no candidate list."""
     import open3d as o3d
 
     reg = o3d.pipelines.registration

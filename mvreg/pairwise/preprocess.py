@@ -1,46 +1,40 @@
-"""Stage 1: voxel size, downsampling, consistently oriented normals, FPFH features.
+"""Stage 1: voxel sizes, downsampling, consistently oriented normals, FPFH features.
 
-Each scan is kept at two resolutions:
+Takes loaded scans (:class:`~mvreg.io.loaders.Scan`, any units) and the ``preprocess``
+section. Returns, per scan, a :class:`PreprocessedScan` in the scan's own frame and
+units, kept at two resolutions:
 
-* the *feature level*, voxel size ``v`` (derived from the data unless given): normals,
-  FPFH (radius ``fpfh_radius_voxels * v``), feature RANSAC and coarse ICP;
+* the *feature level*, voxel ``v`` (:func:`derive_voxel_size` from the data unless
+  given): unit normals, FPFH (radius ``fpfh_radius_voxels * v``), feature RANSAC and
+  coarse ICP;
 * the *fine level*, voxel ``fine_voxel_ratio * v``: fine ICP, pair scores and the
   correspondences that become tracks.
 
-Outliers: points alone in a feature-level voxel (fewer than ``outlier_min_cell_share``
-times the typical count) are dropped first (:func:`outlier_mask`). Stray points that share
-a voxel with the surface survive that; on the fine level a point also needs
-``fine_min_neighbours`` other points within two fine voxels (a surface sampled at that
-voxel has about a dozen; not applied by :func:`resample`, which serves refinement). Left
-in, they became fine-level points, pulled at ICP and counted in the free-space test
-(teapot, seed 0, 10% outliers: 10 of 12 scans registered with them, 12 of 12 without).
+The run's lengths come from :func:`derive_scales` (one check of the voxel,
+:func:`check_voxel_size`) and :func:`with_noise` (after preprocessing), as a
+:class:`~mvreg.scales.Scales`.
 
-Voxel size from the data (:func:`derive_voxel_size`): for each scan, the voxel at which
-it keeps about ``target_points_per_scan`` points (voxels holding a single point are not
-counted; point counts of a surface fall like 1 / v^2, so two corrections from a first
-guess suffice); the median over scans, and
-never less than ``min_voxel_spacings`` times the median point spacing. Nothing assumes
-units: a scan in millimetres gets a voxel 1000 times that of the same scan in metres.
+Guarantees:
 
-Normal orientation: a scan that is a single view (:func:`single_view_axis`: a height
-field along the axis its unoriented PCA normals best avoid being perpendicular to) has
-each normal's sign set by that axis. Other scans (merged clouds, all-round scans) are made
-consistent by propagation along a minimum spanning tree (Open3D
-``orient_normals_consistent_tangent_plane``), which breaks on thin parts (a bunny's ears, a
-teapot's handle) and flipped whole patches of single views (38% of one synthetic bunny
-view) before the axis replaced it there. Then one sign per scan is chosen from the
-first cue the data gives: the normals stored in the file, else a sensor origin stored in
-the file, else "outward" -- a partial scan of an object's exterior is convex on balance,
-so outward normals have sum_p n_p . (p - centroid) > 0. Outward is also towards the
-sensor for any scan taken from outside the object. No cue assumes the sensor sits at the
-origin.
+* outliers: points alone in a feature-level voxel (:func:`outlier_mask`) are dropped;
+  on the fine level a point also needs ``fine_min_neighbours`` other points within two
+  fine voxels (not applied by :func:`resample`, which serves refinement);
+* voxel from the data: per scan the voxel keeping about ``target_points_per_scan``
+  points, the median over scans, at least ``min_voxel_spacings`` times the median point
+  spacing; nothing assumes units (a scan in millimetres gets a voxel 1000 times that of
+  the same scan in metres);
+* normals: within a scan, signs agree -- by the view axis for a single view
+  (:func:`single_view_axis`), else by a spanning tree over the neighbourhoods; one sign
+  per scan then from the first cue the data gives: normals stored in the file, else a
+  sensor origin stored in the file, else "outward" (sum of n . (p - centroid) > 0). No
+  cue assumes the sensor at the origin;
+* view direction: when at least ``min_view_facing`` of the normals face one direction
+  (:func:`view_direction`) the scan is a single view seen from it (orthographic
+  approximation) and pairwise scoring checks free space
+  (:mod:`mvreg.pairwise.scoring`); otherwise ``view_direction`` is None;
+* the same result whatever the executor, in the order of the scans.
 
-View direction: a range scan only holds surfaces that face its sensor, so one direction
-``d`` has ``n . d > 0`` for (nearly) all its oriented normals. :func:`view_direction`
-finds the centre of the cone of normals; when the share of normals facing it is at least
-``min_view_facing`` the scan is treated as a single view seen from ``d`` (orthographic
-approximation) and pairwise alignment can check free-space consistency (see
-:mod:`mvreg.pairwise.align`); otherwise (merged or all-round scans) the check is skipped.
+Measurements behind these choices: ``docs/design/pairwise.md``.
 """
 
 from __future__ import annotations
@@ -438,8 +432,8 @@ def single_view_axis(
     """Viewing axis of a single-view scan from its *unoriented* normals; None if not one view.
 
     Orientation by a spanning tree breaks on thin parts (ears, a handle, a spout): whole
-    patches come out flipped, and the view direction estimated from them can be 80 degrees
-    off. A range scan's unoriented normals are rarely perpendicular to the axis towards its
+    patches come out flipped, and a view direction estimated from them is far off. A
+    range scan's unoriented normals are rarely perpendicular to the axis towards its
     sensor (grazing surfaces are sampled sparsely), so the axis is the direction whose
     small |cosines| with the normals (5% quantile) are largest: searched like
     :func:`view_direction`. The scan counts as one view when, seen along that axis

@@ -173,14 +173,11 @@ def _clustered(points: np.ndarray, radius: float, min_points: int = 3) -> int:
 
 
 def free_space_violation(
-    pre_i: PreprocessedScan,
-    pre_j: PreprocessedScan,
-    T_i_j: np.ndarray,
-    cfg: AlignConfig | None = None,
-    *,
-    scales: Scales | None = None,
+    pre_i, pre_j, T_i_j: np.ndarray, cfg: AlignConfig | None = None, *, scales: Scales | None = None
 ) -> float:
     """Larger of the two scans' shares of points seen through empty space.
+
+    ``pre_i``, ``pre_j``: PreprocessedScans; ``T_i_j`` maps j into i's frame.
 
     Only points facing the other scan's sensor (cosine >= ``free_space_min_facing_cos``)
     count, and the depth slack is ``free_space_tolerance_voxels * v`` plus the depth a
@@ -214,14 +211,11 @@ def _unseen(lateral, points, normals, radius, min_cos, min_count) -> float:
 
 
 def unseen_violation(
-    pre_i: PreprocessedScan,
-    pre_j: PreprocessedScan,
-    T_i_j: np.ndarray,
-    cfg: AlignConfig | None = None,
-    *,
-    scales: Scales | None = None,
+    pre_i, pre_j, T_i_j: np.ndarray, cfg: AlignConfig | None = None, *, scales: Scales | None = None
 ) -> float:
     """Larger of the two scans' shares of points the other view should have seen but did not.
+
+    ``pre_i``, ``pre_j``: PreprocessedScans; ``T_i_j`` maps j into i's frame.
 
     A point of scan j that faces scan i's sensor (cosine >= ``free_space_min_facing_cos``
     with i's view direction) and is not hidden would have been measured by i, so under a

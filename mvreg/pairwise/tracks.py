@@ -7,8 +7,8 @@ tracks: one physical point seen by several scans, one node of the
 :class:`~mvreg.solver.problem.PatchProblem`. A track that sees a scan twice is
 inconsistent (two points of one scan cannot be the same point). With many overlapping
 scans such chains are common (mutual nearest neighbours of differently sampled surfaces
-drift along a chain of scans: on the ten bunny scans about a third of the components),
-so by default (``split_conflicting_tracks``) a conflicting component is rebuilt greedily,
+drift along a chain of scans; numbers in ``docs/design/pairwise.md``), so by default
+(``split_conflicting_tracks``) a conflicting component is rebuilt greedily,
 its links taken shortest first and a link refused when it would put two points of one
 scan into a track (counted in ``num_refused_links``); otherwise it is dropped (counted in
 ``num_dropped_tracks``). Either way every track sees each scan at most once. Patches

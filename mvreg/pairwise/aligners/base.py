@@ -34,22 +34,15 @@ own frames, for scans that come roughly aligned::
 
     import numpy as np
 
-    from mvreg.pairwise.aligners.base import register_aligner
+    from mvreg.pairwise.aligners.base import BaseAligner, register_aligner
     from mvreg.pairwise.decision import verify
-    from mvreg.pairwise.preprocess import scan_scales
     from mvreg.pairwise.result import pair_result
 
 
     @register_aligner("identity-icp")
-    class IdentityIcpAligner:
-        def __init__(self, align, search, *, scales=None, executor=1):
-            self.cfg, self.scales = align, scales
-
-        def prepare(self, pre):
-            pass
-
+    class IdentityIcpAligner(BaseAligner):
         def align(self, pre_i, pre_j, guess=None, seed=0, *, i=0, j=1):
-            start, scales = time.perf_counter(), self.scales or scan_scales(pre_i)
+            start, scales = time.perf_counter(), self.scales_for(pre_i)
             T0 = np.eye(4) if guess is None else guess
             T, reason, scores, _ = verify(pre_i, pre_j, T0, self.cfg, scales)
             return pair_result(pre_i, pre_j, i, j, T, reason, scores, {}, start,
@@ -70,9 +63,10 @@ import numpy as np
 
 from mvreg.config.align import AlignConfig, SearchConfig
 from mvreg.errors import ConfigError
-from mvreg.executor import Executor
-from mvreg.pairwise.preprocess import PreprocessedScan
+from mvreg.executor import Executor, make_executor
+from mvreg.pairwise.preprocess import PreprocessedScan, scan_scales
 from mvreg.pairwise.result import PairResult
+from mvreg.pairwise.scoring import prepare_scans
 from mvreg.scales import Scales
 
 
@@ -94,6 +88,33 @@ class PairwiseAligner(Protocol):
         j: int,
     ) -> PairResult:
         """The decided PairResult of scan j onto scan i (``T_i_j``)."""
+
+
+class BaseAligner:
+    """What most aligners share (a convenience, not part of the contract): the sections
+    and plain values of the factory, :meth:`prepare` building the scans' shared caches,
+    and :meth:`scales_for` (the run's scales, else those of the scan)."""
+
+    def __init__(
+        self,
+        align: AlignConfig | None = None,
+        search: SearchConfig | None = None,
+        *,
+        scales: Scales | None = None,
+        executor: Executor | int = 1,
+    ):
+        self.cfg = align or AlignConfig()
+        self.search = search or SearchConfig()
+        self.scales = scales
+        self.executor = make_executor(executor)
+
+    def prepare(self, pre: Sequence[PreprocessedScan]) -> None:
+        """Build the scans' shared caches (KD-trees, depth grids) before threads share them."""
+        prepare_scans(pre, self.scales)
+
+    def scales_for(self, pre_i: PreprocessedScan) -> Scales:
+        """The run's scales, else those ``pre_i`` was preprocessed at."""
+        return scan_scales(pre_i) if self.scales is None else self.scales
 
 
 AlignerFactory = Callable[..., PairwiseAligner]

@@ -27,58 +27,41 @@ from __future__ import annotations
 import time
 from collections.abc import Sequence
 
-import numpy as np
-
-from mvreg.config.align import AlignConfig, SearchConfig
-from mvreg.executor import Executor, single_threaded_blas
-from mvreg.pairwise.aligners.base import register_aligner
+from mvreg.config.align import AlignConfig
+from mvreg.executor import single_threaded_blas
+from mvreg.pairwise.aligners.base import BaseAligner, register_aligner
 from mvreg.pairwise.decision import Verified, choose, screen, verify
 from mvreg.pairwise.features import FeatureBasis, reduced_tree
 from mvreg.pairwise.hypotheses import RANSAC_BACKENDS, same_pose, scan_extent
 from mvreg.pairwise.icp import coarse_icp
-from mvreg.pairwise.preprocess import PreprocessedScan, scan_scales
+from mvreg.pairwise.preprocess import PreprocessedScan
 from mvreg.pairwise.result import PairResult, pair_result
-from mvreg.pairwise.scoring import prepare_scans
 from mvreg.scales import Scales
 
 
 @register_aligner("feature-ransac")
-class FeatureRansacAligner:
-    """Feature RANSAC, then ICP and the acceptance rule (module docstring)."""
+class FeatureRansacAligner(BaseAligner):
+    """Feature RANSAC, then ICP and the acceptance rule (module docstring).
 
-    def __init__(
-        self,
-        align: AlignConfig | None = None,
-        search: SearchConfig | None = None,
-        *,
-        scales: Scales | None = None,
-        executor: Executor | int = 1,
-        feature_basis: FeatureBasis | None = None,
-    ):
-        self.cfg = align or AlignConfig()
-        self.scales = scales
-        self.feature_basis = feature_basis
+    ``feature_basis``: the descriptor PCA shared by a run (set by :meth:`prepare`; None:
+    fitted on each pair alone).
+    """
+
+    def __init__(self, align=None, search=None, *, scales=None, executor=1, feature_basis=None):
+        super().__init__(align, search, scales=scales, executor=executor)
+        self.feature_basis: FeatureBasis | None = feature_basis
 
     def prepare(self, pre: Sequence[PreprocessedScan]) -> None:
         """Fit the descriptor basis on all scans; build the shared caches."""
         self.feature_basis = FeatureBasis.fit([p.features for p in pre], self.cfg.feature_dims)
-        prepare_scans(pre, self.scales)
+        super().prepare(pre)
         for p in pre:
             reduced_tree(p, self.feature_basis)
 
-    def align(
-        self,
-        pre_i: PreprocessedScan,
-        pre_j: PreprocessedScan,
-        guess: np.ndarray | None = None,
-        seed: int = 0,
-        *,
-        i: int = 0,
-        j: int = 1,
-    ) -> PairResult:
+    def align(self, pre_i, pre_j, guess=None, seed=0, *, i=0, j=1) -> PairResult:
         """Align scan j to scan i (``guess`` unused); deterministic for ``seed``."""
         start = time.perf_counter()
-        scales = scan_scales(pre_i) if self.scales is None else self.scales
+        scales = self.scales_for(pre_i)
         with single_threaded_blas():
             return self._align(pre_i, pre_j, seed, i, j, scales, start)
 

@@ -13,54 +13,25 @@ relabel it), ``T_guess`` (the guess as nested lists), ``median_residual``.
 from __future__ import annotations
 
 import time
-from collections.abc import Sequence
 
 import numpy as np
 
-from mvreg.config.align import AlignConfig, SearchConfig
-from mvreg.executor import Executor, single_threaded_blas
-from mvreg.pairwise.aligners.base import register_aligner
+from mvreg.executor import single_threaded_blas
+from mvreg.pairwise.aligners.base import BaseAligner, register_aligner
 from mvreg.pairwise.decision import rescore
 from mvreg.pairwise.icp import coarse_icp, fine_icp
-from mvreg.pairwise.preprocess import PreprocessedScan, scan_scales
 from mvreg.pairwise.result import PairResult
-from mvreg.pairwise.scoring import prepare_scans
-from mvreg.scales import Scales
 
 
 @register_aligner("icp-guess")
-class IcpGuessAligner:
+class IcpGuessAligner(BaseAligner):
     """ICP from a guess, then the acceptance rule (module docstring)."""
 
-    def __init__(
-        self,
-        align: AlignConfig | None = None,
-        search: SearchConfig | None = None,
-        *,
-        scales: Scales | None = None,
-        executor: Executor | int = 1,
-    ):
-        self.cfg = align or AlignConfig()
-        self.scales = scales
-
-    def prepare(self, pre: Sequence[PreprocessedScan]) -> None:
-        """Build the shared caches."""
-        prepare_scans(pre, self.scales)
-
-    def align(
-        self,
-        pre_i: PreprocessedScan,
-        pre_j: PreprocessedScan,
-        guess: np.ndarray | None = None,
-        seed: int = 0,
-        *,
-        i: int = 0,
-        j: int = 1,
-    ) -> PairResult:
+    def align(self, pre_i, pre_j, guess=None, seed=0, *, i=0, j=1) -> PairResult:
         """ICP of scan j onto scan i from ``guess`` (T_i_j, (4, 4); None: identity)."""
         cfg = self.cfg
         start = time.perf_counter()
-        scales = scan_scales(pre_i) if self.scales is None else self.scales
+        scales = self.scales_for(pre_i)
         guess = np.eye(4) if guess is None else guess
         with single_threaded_blas():
             T = coarse_icp(pre_i, pre_j, guess, cfg, scales.voxel)

@@ -21,20 +21,18 @@ The starts are screened on the aligner's ``executor``; deterministic whatever it
 from __future__ import annotations
 
 import time
-from collections.abc import Sequence
 
 import numpy as np
 from scipy.spatial.transform import Rotation
 
 from mvreg.config.align import AlignConfig, SearchConfig
-from mvreg.executor import Executor, make_executor
-from mvreg.pairwise.aligners.base import register_aligner
+from mvreg.executor import Executor
+from mvreg.pairwise.aligners.base import BaseAligner, register_aligner
 from mvreg.pairwise.decision import choose, screen, verify
 from mvreg.pairwise.hypotheses import distinct_poses, scan_extent
 from mvreg.pairwise.icp import feature_level_tree, icp_point_to_plane
-from mvreg.pairwise.preprocess import PreprocessedScan, scan_scales
+from mvreg.pairwise.preprocess import PreprocessedScan
 from mvreg.pairwise.result import PairResult, pair_result
-from mvreg.pairwise.scoring import prepare_scans
 from mvreg.scales import Scales
 
 
@@ -47,40 +45,14 @@ def rotation_starts(offset_deg: float = 20.0) -> np.ndarray:
 
 
 @register_aligner("rotation-search")
-class RotationSearchAligner:
+class RotationSearchAligner(BaseAligner):
     """ICP from every start rotation, then the acceptance rule (module docstring)."""
 
-    def __init__(
-        self,
-        align: AlignConfig | None = None,
-        search: SearchConfig | None = None,
-        *,
-        scales: Scales | None = None,
-        executor: Executor | int = 2,
-    ):
-        self.cfg = align or AlignConfig()
-        self.search = search or SearchConfig()
-        self.scales = scales
-        self.executor = make_executor(executor)
-
-    def prepare(self, pre: Sequence[PreprocessedScan]) -> None:
-        """Build the shared caches."""
-        prepare_scans(pre, self.scales)
-
-    def align(
-        self,
-        pre_i: PreprocessedScan,
-        pre_j: PreprocessedScan,
-        guess: np.ndarray | None = None,
-        seed: int = 0,
-        *,
-        i: int = 0,
-        j: int = 1,
-    ) -> PairResult:
+    def align(self, pre_i, pre_j, guess=None, seed=0, *, i=0, j=1) -> PairResult:
         """Align j to i from every start rotation; accepted or not."""
         cfg, search = self.cfg, self.search
         start = time.perf_counter()
-        scales = scan_scales(pre_i) if self.scales is None else self.scales
+        scales = self.scales_for(pre_i)
         v = scales.voxel
         ci = pre_i.points.mean(axis=0)
         cj, radius = scan_extent(pre_j.points)

@@ -27,13 +27,7 @@ from mvreg.pairwise import (
     score_alignment,
     tracks_from_correspondences,
 )
-from mvreg.pairwise.align import (
-    PairResult,
-    free_space_violation,
-    pair_seed,
-    reject_relative_outliers,
-    unseen_violation,
-)
+from mvreg.pairwise.align import reject_relative_outliers
 from mvreg.pairwise.preprocess import (
     outlier_mask,
     preprocess,
@@ -41,6 +35,8 @@ from mvreg.pairwise.preprocess import (
     view_axis_occlusion,
     view_direction,
 )
+from mvreg.pairwise.result import PairResult, pair_seed
+from mvreg.pairwise.scoring import free_space_violation, unseen_violation
 
 # ----------------------------------------------------------------------------- helpers
 
@@ -255,9 +251,9 @@ def test_non_overlapping_pair_is_rejected(synthetic_pre):
 def test_alignment_is_deterministic(synthetic_pre):
     pre, _ = synthetic_pre
     pairs = [(0, 1), (0, 2), (1, 2)]
-    one = align_pairs(pre, pairs, AlignConfig(), seed=5, workers=1)
-    two = align_pairs(pre, pairs, AlignConfig(), seed=5, workers=2)
-    again = align_pairs(pre, pairs, AlignConfig(), seed=5, workers=2)
+    one = align_pairs(pre, pairs, AlignConfig(), seed=5, executor=1)
+    two = align_pairs(pre, pairs, AlignConfig(), seed=5, executor=2)
+    again = align_pairs(pre, pairs, AlignConfig(), seed=5, executor=2)
     for a, b, c in zip(one, two, again, strict=True):
         np.testing.assert_array_equal(a.T_i_j, b.T_i_j)
         np.testing.assert_array_equal(a.T_i_j, c.T_i_j)

@@ -10,8 +10,8 @@ from scipy.spatial import cKDTree
 from scipy.spatial.transform import Rotation
 
 from mvreg.geometry import invert_transform, transform_points
-from mvreg.pairwise.align import PairResult
 from mvreg.pairwise.consistency import inconsistent_pairs
+from mvreg.pairwise.result import PairResult
 
 
 def _pose(rng, angle_deg=None, shift=1.0):
@@ -102,14 +102,14 @@ def test_support_prefers_the_hypothesis_outside_free_space():
     """Teapot seed 1, scan_005-scan_010: the flip passed the rule with 3986 correspondences
     and 0.003 of its points in free space, the right pose with 4002 and 0.000."""
     from mvreg.config import AlignConfig
-    from mvreg.pairwise.align import _support
+    from mvreg.pairwise.decision import support
 
     cfg = AlignConfig()
     flip = {"num_correspondences": 3986, "free_space_violation": 0.003}
     right = {"num_correspondences": 4002, "free_space_violation": 0.0}
-    assert _support(right, cfg) > 2 * _support(flip, cfg)
+    assert support(right, cfg) > 2 * support(flip, cfg)
     no_view = {"num_correspondences": 100, "free_space_violation": float("nan")}
-    assert _support(no_view, cfg) == 100
+    assert support(no_view, cfg) == 100
 
 
 def test_robust_rounds_never_cut_a_scan_off():

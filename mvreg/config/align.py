@@ -9,7 +9,9 @@ from pydantic import BaseModel, ConfigDict, Field
 
 
 class AlignConfig(BaseModel):
-    """Stage 3 settings. Distances are multiples of the feature voxel size ``v``."""
+    """Stage 3 settings: feature matching, RANSAC, ICP, the scores and the acceptance rule
+    that every pairwise aligner shares (mvreg.pairwise.aligners, mvreg.pairwise.decision).
+    Distances are multiples of the feature voxel size ``v``."""
 
     model_config = ConfigDict(extra="forbid")
 
@@ -76,7 +78,9 @@ class AlignConfig(BaseModel):
 
 
 class SearchConfig(BaseModel):
-    """Stage 3b settings (distances in multiples of the voxel size ``v``)."""
+    """Stage 3b settings: which scans and partners are tried (mvreg.pairwise.search) and
+    the screening of the rotation-search aligner. Distances in multiples of the voxel
+    size ``v``."""
 
     model_config = ConfigDict(extra="forbid")
 

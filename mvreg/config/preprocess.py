@@ -6,7 +6,8 @@ from pydantic import BaseModel, ConfigDict, Field
 
 
 class PreprocessConfig(BaseModel):
-    """Stage 1 settings. Distances are in multiples of the voxel size ``v``."""
+    """Stage 1 settings. Distances are in multiples of the voxel size ``v`` (given as
+    ``voxel_size`` or derived from the data: mvreg.pairwise.preprocess.derive_scales)."""
 
     model_config = ConfigDict(extra="forbid")
 

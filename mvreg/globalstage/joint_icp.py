@@ -34,7 +34,7 @@ from mvreg.geometry import (
 from mvreg.globalstage.refine import overlapping_pairs
 from mvreg.globalstage.robust import robust_weights
 from mvreg.pairwise import PreprocessedScan
-from mvreg.pairwise.align import nearest_with_normals
+from mvreg.pairwise.icp import nearest_with_normals
 
 
 @dataclass

@@ -26,7 +26,7 @@ from mvreg.geometry import invert_transform, transform_points
 from mvreg.globalstage.robust import robust_weights
 from mvreg.globalstage.solve import GlobalSolution, TrackSolver, max_translation_change
 from mvreg.pairwise import PreprocessedScan, mutual_correspondences, resample
-from mvreg.pairwise.align import icp_point_to_plane
+from mvreg.pairwise.icp import icp_point_to_plane
 from mvreg.pairwise.tracks import tracks_from_correspondences
 
 

@@ -144,7 +144,7 @@ class MultiviewPlan:
 
     def tracks(self, ctx, pre, results, weights):
         return build_tracks(
-            pre, results, ctx.cfg.tracks, pair_weights=weights, workers=ctx.executor.workers
+            pre, results, ctx.cfg.tracks, pair_weights=weights, executor=ctx.executor
         )
 
     def refine(self, ctx, pre, out):

@@ -1,53 +1,46 @@
-"""Stage 1: voxel size, downsampling, consistently oriented normals, FPFH features.
+"""Stage 1: voxel sizes, downsampling, consistently oriented normals, FPFH features.
 
-Each scan is kept at two resolutions:
+Takes loaded scans (:class:`~mvreg.io.loaders.Scan`, any units) and the ``preprocess``
+section. Returns, per scan, a :class:`PreprocessedScan` in the scan's own frame and
+units, kept at two resolutions:
 
-* the *feature level*, voxel size ``v`` (derived from the data unless given): normals,
-  FPFH (radius ``fpfh_radius_voxels * v``), feature RANSAC and coarse ICP;
+* the *feature level*, voxel ``v`` (:func:`derive_voxel_size` from the data unless
+  given): unit normals, FPFH (radius ``fpfh_radius_voxels * v``), feature RANSAC and
+  coarse ICP;
 * the *fine level*, voxel ``fine_voxel_ratio * v``: fine ICP, pair scores and the
   correspondences that become tracks.
 
-Outliers: points alone in a feature-level voxel (fewer than ``outlier_min_cell_share``
-times the typical count) are dropped first (:func:`outlier_mask`). Stray points that share
-a voxel with the surface survive that; on the fine level a point also needs
-``fine_min_neighbours`` other points within two fine voxels (a surface sampled at that
-voxel has about a dozen; not applied by :func:`resample`, which serves refinement). Left
-in, they became fine-level points, pulled at ICP and counted in the free-space test
-(teapot, seed 0, 10% outliers: 10 of 12 scans registered with them, 12 of 12 without).
+The run's lengths come from :func:`derive_scales` (one check of the voxel,
+:func:`check_voxel_size`) and :func:`with_noise` (after preprocessing), as a
+:class:`~mvreg.scales.Scales`.
 
-Voxel size from the data (:func:`derive_voxel_size`): for each scan, the voxel at which
-it keeps about ``target_points_per_scan`` points (voxels holding a single point are not
-counted; point counts of a surface fall like 1 / v^2, so two corrections from a first
-guess suffice); the median over scans, and
-never less than ``min_voxel_spacings`` times the median point spacing. Nothing assumes
-units: a scan in millimetres gets a voxel 1000 times that of the same scan in metres.
+Guarantees:
 
-Normal orientation: a scan that is a single view (:func:`single_view_axis`: a height
-field along the axis its unoriented PCA normals best avoid being perpendicular to) has
-each normal's sign set by that axis. Other scans (merged clouds, all-round scans) are made
-consistent by propagation along a minimum spanning tree (Open3D
-``orient_normals_consistent_tangent_plane``), which breaks on thin parts (a bunny's ears, a
-teapot's handle) and flipped whole patches of single views (38% of one synthetic bunny
-view) before the axis replaced it there. Then one sign per scan is chosen from the
-first cue the data gives: the normals stored in the file, else a sensor origin stored in
-the file, else "outward" -- a partial scan of an object's exterior is convex on balance,
-so outward normals have sum_p n_p . (p - centroid) > 0. Outward is also towards the
-sensor for any scan taken from outside the object. No cue assumes the sensor sits at the
-origin.
+* outliers: points alone in a feature-level voxel (:func:`outlier_mask`) are dropped;
+  on the fine level a point also needs ``fine_min_neighbours`` other points within two
+  fine voxels (not applied by :func:`resample`, which serves refinement);
+* voxel from the data: per scan the voxel keeping about ``target_points_per_scan``
+  points, the median over scans, at least ``min_voxel_spacings`` times the median point
+  spacing; nothing assumes units (a scan in millimetres gets a voxel 1000 times that of
+  the same scan in metres);
+* normals: within a scan, signs agree -- by the view axis for a single view
+  (:func:`single_view_axis`), else by a spanning tree over the neighbourhoods; one sign
+  per scan then from the first cue the data gives: normals stored in the file, else a
+  sensor origin stored in the file, else "outward" (sum of n . (p - centroid) > 0). No
+  cue assumes the sensor at the origin;
+* view direction: when at least ``min_view_facing`` of the normals face one direction
+  (:func:`view_direction`) the scan is a single view seen from it (orthographic
+  approximation) and pairwise scoring checks free space
+  (:mod:`mvreg.pairwise.scoring`); otherwise ``view_direction`` is None;
+* the same result whatever the executor, in the order of the scans.
 
-View direction: a range scan only holds surfaces that face its sensor, so one direction
-``d`` has ``n . d > 0`` for (nearly) all its oriented normals. :func:`view_direction`
-finds the centre of the cone of normals; when the share of normals facing it is at least
-``min_view_facing`` the scan is treated as a single view seen from ``d`` (orthographic
-approximation) and pairwise alignment can check free-space consistency (see
-:mod:`mvreg.pairwise.align`); otherwise (merged or all-round scans) the check is skipped.
+Measurements behind these choices: ``docs/design/pairwise.md``.
 """
 
 from __future__ import annotations
 
 from collections.abc import Callable, Sequence
-from concurrent.futures import ThreadPoolExecutor
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from typing import TYPE_CHECKING
 
 import numpy as np
@@ -55,7 +48,8 @@ from scipy.spatial import cKDTree
 
 from mvreg.config.preprocess import PreprocessConfig
 from mvreg.errors import ConfigError
-from mvreg.pairwise._threads import single_threaded_blas
+from mvreg.executor import Executor, make_executor, single_threaded_blas
+from mvreg.scales import Scales
 
 if TYPE_CHECKING:
     from mvreg.io.loaders import Scan
@@ -181,8 +175,14 @@ def median_spacing(points: np.ndarray, max_samples: int = 4000) -> float:
     return float(np.median(d[:, 1]))
 
 
-def derive_voxel_size(scans: list[Scan], cfg: PreprocessConfig | None = None) -> float:
-    """Feature-level voxel size from the data (see the module docstring). Data units."""
+def derive_voxel_size(
+    scans: list[Scan], cfg: PreprocessConfig | None = None, executor: Executor | int = 2
+) -> float:
+    """Feature-level voxel size from the data (see the module docstring). Data units.
+
+    The scans are measured on ``executor`` (an int: that many threads); the result does
+    not depend on it.
+    """
     cfg = cfg or PreprocessConfig()
     if cfg.voxel_size is not None:
         return float(cfg.voxel_size)
@@ -199,8 +199,8 @@ def derive_voxel_size(scans: list[Scan], cfg: PreprocessConfig | None = None) ->
             voxel *= np.sqrt(_voxel_count(pts, voxel) / target)
         return voxel, spacing
 
-    with ThreadPoolExecutor(2) as pool:  # the same numbers as one by one
-        sizes, spacings = zip(*pool.map(one, [scan.points for scan in scans]), strict=True)
+    measured = make_executor(executor).map(one, [scan.points for scan in scans])
+    sizes, spacings = zip(*measured, strict=True)
     voxel = max(float(np.median(sizes)), cfg.min_voxel_spacings * float(np.median(spacings)))
     if not np.isfinite(voxel) or voxel <= 0:
         raise ConfigError("could not derive a voxel size from the data (degenerate scans)")
@@ -220,9 +220,41 @@ def _orient_like(normals: np.ndarray, points: np.ndarray, ref_points, ref_normal
     return normals * sign[:, None]
 
 
-def _check_voxel(voxel_size: float) -> None:
-    if not voxel_size > 0:
+def check_voxel_size(voxel_size: float) -> float:
+    """``voxel_size`` as a float; ConfigError unless it is finite and > 0. The one check
+    of a voxel size, given or derived."""
+    v = float(voxel_size)
+    if not (np.isfinite(v) and v > 0):
         raise ConfigError(f"voxel_size must be > 0, got {voxel_size}")
+    return v
+
+
+def derive_scales(
+    scans: Sequence[Scan], cfg: PreprocessConfig | None = None, executor: Executor | int = 2
+) -> Scales:
+    """The run's :class:`~mvreg.scales.Scales` before preprocessing: the feature voxel
+    (``cfg.voxel_size`` when given, else :func:`derive_voxel_size`), the fine voxel
+    (``fine_voxel_ratio`` times it) and where the voxel came from; ``noise`` 0 until
+    :func:`with_noise`. ConfigError for a voxel that is not finite and > 0."""
+    cfg = cfg or PreprocessConfig()
+    voxel = check_voxel_size(derive_voxel_size(scans, cfg, executor))
+    return Scales(
+        voxel=voxel,
+        fine_voxel=cfg.fine_voxel_ratio * voxel,
+        voxel_source="given" if cfg.voxel_size is not None else "derived",
+    )
+
+
+def with_noise(scales: Scales, pre: Sequence[PreprocessedScan]) -> Scales:
+    """``scales`` with ``noise`` = the median of the preprocessed scans' own noise
+    estimates (0 without scans). Per-scan noise stays on each scan."""
+    return replace(scales, noise=float(np.median([p.noise for p in pre])) if pre else 0.0)
+
+
+def scan_scales(pre: PreprocessedScan) -> Scales:
+    """The voxel sizes ``pre`` was preprocessed at, for callers that pass no run-wide
+    :class:`~mvreg.scales.Scales` (every scan of a run has the same ones)."""
+    return Scales(voxel=pre.voxel_size, fine_voxel=pre.fine_voxel_size)
 
 
 def preprocess(
@@ -236,29 +268,24 @@ def preprocess(
             every scan of a run, so that features are comparable).
     """
     cfg = cfg or PreprocessConfig()
-    _check_voxel(voxel_size)
+    voxel_size = check_voxel_size(voxel_size)
     with single_threaded_blas():
-        return _preprocess(scan, float(voxel_size), cfg)
+        return _preprocess(scan, voxel_size, cfg)
 
 
 def preprocess_all(
     scans: Sequence[Scan],
     voxel_size: float,
     cfg: PreprocessConfig | None = None,
-    workers: int = 2,
+    executor: Executor | int = 2,
     progress: Callable[[PreprocessedScan], None] | None = None,
 ) -> list[PreprocessedScan]:
-    """:func:`preprocess` of every scan on ``workers`` threads; the same result as one by
-    one, in the order of ``scans``. ``progress`` is called as each scan is done."""
+    """:func:`preprocess` of every scan on ``executor`` (an int: that many threads); the
+    same result as one by one, in the order of ``scans``. ``progress`` is called (from
+    the calling thread) as each scan is done, in that order."""
     cfg = cfg or PreprocessConfig()
-    _check_voxel(voxel_size)
-    out = []
-    with single_threaded_blas(), ThreadPoolExecutor(max(1, workers)) as pool:
-        for p in pool.map(lambda s: _preprocess(s, float(voxel_size), cfg), scans):
-            out.append(p)
-            if progress is not None:
-                progress(p)
-    return out
+    voxel_size = check_voxel_size(voxel_size)
+    return make_executor(executor).map(lambda s: _preprocess(s, voxel_size, cfg), scans, progress)
 
 
 def _preprocess(scan: Scan, v: float, cfg: PreprocessConfig) -> PreprocessedScan:
@@ -316,7 +343,7 @@ def _preprocess(scan: Scan, v: float, cfg: PreprocessConfig) -> PreprocessedScan
         fine_voxel_size=fine_v,
         fine_points=fine_pts,
         fine_normals=fine_nrm,
-        noise=max(_plane_noise(fine_pts, fine_nrm), cfg.noise_floor_fine_voxels * fine_v),
+        noise=max(plane_noise(fine_pts, fine_nrm), cfg.noise_floor_fine_voxels * fine_v),
         orientation=orientation,
         num_raw_points=scan.num_points,
         num_outliers_removed=int(np.count_nonzero(~keep)) if cfg.outlier_min_cell_share else 0,
@@ -405,8 +432,8 @@ def single_view_axis(
     """Viewing axis of a single-view scan from its *unoriented* normals; None if not one view.
 
     Orientation by a spanning tree breaks on thin parts (ears, a handle, a spout): whole
-    patches come out flipped, and the view direction estimated from them can be 80 degrees
-    off. A range scan's unoriented normals are rarely perpendicular to the axis towards its
+    patches come out flipped, and a view direction estimated from them is far off. A
+    range scan's unoriented normals are rarely perpendicular to the axis towards its
     sensor (grazing surfaces are sampled sparsely), so the axis is the direction whose
     small |cosines| with the normals (5% quantile) are largest: searched like
     :func:`view_direction`. The scan counts as one view when, seen along that axis
@@ -459,7 +486,7 @@ def _rotation_from_z(d: np.ndarray) -> np.ndarray:
     return np.eye(3) + k + k @ k / (1.0 + c)
 
 
-def _plane_noise(points: np.ndarray, normals: np.ndarray) -> float:
+def plane_noise(points: np.ndarray, normals: np.ndarray) -> float:
     """Median |n_p . (q - p)| over points p with nearest other point q (same scan)."""
     _, idx = cKDTree(points).query(points, k=2)
     q = points[idx[:, 1]]

@@ -7,8 +7,8 @@ tracks: one physical point seen by several scans, one node of the
 :class:`~mvreg.solver.problem.PatchProblem`. A track that sees a scan twice is
 inconsistent (two points of one scan cannot be the same point). With many overlapping
 scans such chains are common (mutual nearest neighbours of differently sampled surfaces
-drift along a chain of scans: on the ten bunny scans about a third of the components),
-so by default (``split_conflicting_tracks``) a conflicting component is rebuilt greedily,
+drift along a chain of scans; numbers in ``docs/design/pairwise.md``), so by default
+(``split_conflicting_tracks``) a conflicting component is rebuilt greedily,
 its links taken shortest first and a link refused when it would put two points of one
 scan into a track (counted in ``num_refused_links``); otherwise it is dropped (counted in
 ``num_dropped_tracks``). Either way every track sees each scan at most once. Patches
@@ -24,7 +24,6 @@ that link it.
 from __future__ import annotations
 
 from collections.abc import Sequence
-from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -32,11 +31,12 @@ import scipy.sparse as sp
 from scipy.sparse.csgraph import connected_components
 
 from mvreg.config.tracks import TracksConfig
+from mvreg.executor import Executor, make_executor
 from mvreg.geometry import transform_points
-from mvreg.pairwise._threads import single_threaded_blas
-from mvreg.pairwise.align import PairResult
 from mvreg.pairwise.correspondences import mutual_correspondences
-from mvreg.pairwise.preprocess import PreprocessedScan
+from mvreg.pairwise.preprocess import PreprocessedScan, scan_scales
+from mvreg.pairwise.result import PairResult
+from mvreg.scales import Scales
 
 
 @dataclass
@@ -112,14 +112,20 @@ def pair_correspondences(
     pre_j: PreprocessedScan,
     T_i_j: np.ndarray,
     cfg: TracksConfig | None = None,
+    *,
+    scales: Scales | None = None,
 ) -> tuple[np.ndarray, np.ndarray]:
-    """Mutual correspondences between two scans' fine points -> (idx_i, idx_j)."""
+    """Mutual correspondences between two scans' fine points -> (idx_i, idx_j).
+
+    ``scales``: the run's (default: those ``pre_i`` was preprocessed at).
+    """
     cfg = cfg or TracksConfig()
+    scales = scan_scales(pre_i) if scales is None else scales
     idx_i, idx_j = mutual_correspondences(
         pre_i.fine_points,
         pre_j.fine_points,
         T_i_j,
-        cfg.max_correspondence_voxels * pre_i.voxel_size,
+        cfg.max_correspondence_voxels * scales.voxel,
         normals_i=pre_i.fine_normals,
         normals_j=pre_j.fine_normals,
         min_normal_cos=cfg.min_normal_cos,
@@ -138,26 +144,29 @@ def build_tracks(
     results: Sequence[PairResult],
     cfg: TracksConfig | None = None,
     pair_weights: Sequence[float] | None = None,
-    workers: int = 2,
+    executor: Executor | int = 2,
+    *,
+    scales: Scales | None = None,
 ) -> Tracks:
     """Correspondences of the accepted pairs among ``results`` -> :class:`Tracks`.
 
     ``pair_weights`` (one per accepted result, default 1) weight the observations. The
-    pairs are matched on ``workers`` threads (KD-tree queries release the GIL).
+    pairs are matched on ``executor`` (an int: that many threads; KD-tree queries release
+    the GIL); the result does not depend on it. ``scales``: the run's (default: those
+    each scan was preprocessed at).
     """
     cfg = cfg or TracksConfig()
     accepted = [r for r in results if r.accepted]
 
     def match(r):
-        idx_i, idx_j = pair_correspondences(pre[r.i], pre[r.j], r.T_i_j, cfg)
+        idx_i, idx_j = pair_correspondences(pre[r.i], pre[r.j], r.T_i_j, cfg, scales=scales)
         moved = transform_points(r.T_i_j, pre[r.j].fine_points[idx_j])
         return (idx_i, idx_j), np.linalg.norm(pre[r.i].fine_points[idx_i] - moved, axis=1)
 
     for r in accepted:  # build the KD-trees once, before the threads share them
         pre[r.i].fine_tree()
         pre[r.j].fine_tree()
-    with single_threaded_blas(), ThreadPoolExecutor(max(1, workers)) as pool:
-        matched = list(pool.map(match, accepted))
+    matched = make_executor(executor).map(match, accepted)
     corr = [m[0] for m in matched]
     distances = [m[1] for m in matched]
     pairs = np.array([(r.i, r.j) for r in accepted], dtype=np.int64).reshape(-1, 2)
@@ -194,8 +203,6 @@ def tracks_from_correspondences(
             the order in which links of a conflicting track are taken (default: as given).
         split_conflicts: split tracks that see a scan twice (True) or drop them.
     """
-    from mvreg.solver.problem import PatchProblem
-
     m = len(points)
     pairs = np.asarray(pairs, dtype=np.int64).reshape(-1, 2)
     p_count = len(pairs)
@@ -204,21 +211,61 @@ def tracks_from_correspondences(
         raise ValueError(f"{weights.shape[0]} pair weights for {p_count} pairs")
     offsets = np.concatenate([[0], np.cumsum([len(p) for p in points])]).astype(np.int64)
     counts = np.array([len(c[0]) for c in correspondences], dtype=np.int64)
-    use = [k for k in range(p_count) if weights[k] > 0 and counts[k] > 0]
-    if use:
-        a = np.concatenate([offsets[pairs[k, 0]] + correspondences[k][0] for k in use])
-        b = np.concatenate([offsets[pairs[k, 1]] + correspondences[k][1] for k in use])
-        edge_pair = np.concatenate([np.full(counts[k], k, np.int64) for k in use])
-        edge_len = (
-            np.concatenate([np.asarray(distances[k], float) for k in use])
-            if distances is not None
-            else np.zeros(len(a))
-        )
-    else:
-        a = b = edge_pair = np.zeros(0, np.int64)
-        edge_len = np.zeros(0)
+    links = _links(pairs, correspondences, weights, counts, offsets, distances)
+    g = _label_points(links, offsets, m, split_conflicts)
+    obs = _observations(points, links[2], g, offsets, weights)
+    patch_scans, problem_obs, problem = _largest_problem(obs, names, m)
+    in_problem = set(patch_scans.tolist())
+    return Tracks(
+        scan_names=[str(n) for n in names],
+        obs_scan=obs["obs_scan"],
+        obs_point=obs["obs_point"],
+        obs_node=obs["obs_node"],
+        coords=obs["coords"],
+        weight=obs["weight"],
+        obs_pair=obs["obs_pair"],
+        link_obs=obs["link_obs"],
+        link_pair=obs["link_pair"],
+        pairs=pairs,
+        pair_weights=weights,
+        pair_num_correspondences=counts,
+        num_tracks=obs["num_tracks"],
+        num_conflicting_tracks=g["num_conflicting"],
+        num_dropped_tracks=0 if split_conflicts else g["num_conflicting"],
+        num_refused_links=int(g["refused"]),
+        num_dropped_observations=obs["num_dropped"],
+        patch_scans=patch_scans,
+        problem_observations=problem_obs,
+        unconnected_scans=[str(names[s]) for s in range(m) if s not in in_problem],
+        problem=problem,
+        _inputs=(
+            list(points), list(names), pairs, list(correspondences), weights,
+            None if distances is None else list(distances), split_conflicts,
+        ),
+    )  # fmt: skip
 
-    # Union-find as connected components of the graph on the linked points only.
+
+def _links(pairs, correspondences, weights, counts, offsets, distances):
+    """The correspondences of the pairs in use as links between global point ids:
+    (a, b, pair of each link, length of each link)."""
+    use = [k for k in range(len(pairs)) if weights[k] > 0 and counts[k] > 0]
+    if not use:
+        return np.zeros(0, np.int64), np.zeros(0, np.int64), np.zeros(0, np.int64), np.zeros(0)
+    a = np.concatenate([offsets[pairs[k, 0]] + correspondences[k][0] for k in use])
+    b = np.concatenate([offsets[pairs[k, 1]] + correspondences[k][1] for k in use])
+    edge_pair = np.concatenate([np.full(counts[k], k, np.int64) for k in use])
+    edge_len = (
+        np.concatenate([np.asarray(distances[k], float) for k in use])
+        if distances is not None
+        else np.zeros(len(a))
+    )
+    return a, b, edge_pair, edge_len
+
+
+def _label_points(links, offsets, m: int, split_conflicts: bool) -> dict:
+    """Union-find as connected components of the graph on the linked points only; a
+    component that sees a scan twice is split (or dropped: label -1)."""
+    a, b, _, edge_len = links
     verts, inv = np.unique(np.concatenate([a, b]), return_inverse=True)
     ea, eb = inv[: len(a)], inv[len(a) :]
     nv = len(verts)
@@ -238,7 +285,17 @@ def tracks_from_correspondences(
         label, refused = _split_conflicts(label, num_labels, bad, ea, eb, edge_len, vert_scan)
     elif num_conflicting:
         label = np.where(bad[label], -1, label)
-    # Tracks are the labels held by two or more points; ids in order of first point.
+    return {
+        "verts": verts, "ea": ea, "eb": eb, "label": label, "vert_scan": vert_scan,
+        "num_conflicting": num_conflicting, "refused": refused,
+    }  # fmt: skip
+
+
+def _observations(points, edge_pair, g: dict, offsets, weights) -> dict:
+    """Tracks are the labels held by two or more points (ids in order of first point);
+    observations are their points, in point-id order, with weights and first pairs."""
+    verts, ea, eb, label = g["verts"], g["ea"], g["eb"], g["label"]
+    nv = len(verts)
     size = np.bincount(label[label >= 0], minlength=1)
     keep_vert = label >= 0
     keep_vert[keep_vert] = size[label[keep_vert]] >= 2
@@ -248,11 +305,8 @@ def tracks_from_correspondences(
     obs_vert = np.flatnonzero(keep_vert)  # observations = kept points, in point-id order
     obs_of_vert = np.full(nv, -1, np.int64)
     obs_of_vert[obs_vert] = np.arange(len(obs_vert))
-    obs_scan = vert_scan[obs_vert]
-    obs_point = verts[obs_vert] - offsets[obs_scan]
-    obs_node = node_of_label[label[obs_vert]]
+    obs_scan = g["vert_scan"][obs_vert]
     all_points = np.vstack([np.asarray(p, dtype=np.float64).reshape(-1, 3) for p in points])
-    coords = all_points[verts[obs_vert]]
     link_keep = keep_vert[ea] & (label[ea] == label[eb])  # refused links join two tracks
     link_obs = np.stack([obs_of_vert[ea[link_keep]], obs_of_vert[eb[link_keep]]], axis=1)
     link_pair = edge_pair[link_keep]
@@ -264,61 +318,50 @@ def tracks_from_correspondences(
     link_idx = np.tile(np.arange(len(link_obs)), 2)
     order = np.lexsort((link_idx, ends))
     _, first = np.unique(ends[order], return_index=True)
-    obs_pair = link_pair[link_idx[order[first]]]
+    return {
+        "obs_scan": obs_scan,
+        "obs_point": verts[obs_vert] - offsets[obs_scan],
+        "obs_node": node_of_label[label[obs_vert]],
+        "coords": all_points[verts[obs_vert]],
+        "weight": weight,
+        "obs_pair": link_pair[link_idx[order[first]]],
+        "link_obs": link_obs,
+        "link_pair": link_pair,
+        "num_tracks": int(len(kept_labels)),
+        "num_dropped": int(np.count_nonzero(~keep_vert)),
+    }
 
-    # The largest set of scans connected through tracks.
+
+def _largest_problem(obs: dict, names, m: int):
+    """The largest set of scans connected through tracks and its PatchProblem:
+    (patch_scans, problem_observations, problem or None)."""
+    from mvreg.solver.problem import PatchProblem
+
+    obs_scan, obs_node, num_tracks = obs["obs_scan"], obs["obs_node"], obs["num_tracks"]
     scan_graph = sp.coo_matrix(
         (np.ones(len(obs_scan)), (obs_scan, m + obs_node)),
-        shape=(m + len(kept_labels), m + len(kept_labels)),
+        shape=(m + num_tracks, m + num_tracks),
     )
     _, comp = connected_components(scan_graph, directed=False)
     comp = comp[:m]
     seen = np.bincount(obs_scan, minlength=m) > 0
-    problem, patch_scans, problem_obs = None, np.zeros(0, np.int64), np.zeros(0, np.int64)
-    if seen.any():
-        sizes = np.bincount(comp[seen], minlength=comp.max() + 1)
-        best = int(np.argmax(sizes))  # ties: lowest label, i.e. the component of scan 0 first
-        patch_scans = np.flatnonzero((comp == best) & seen)
-        patch_of_scan = np.full(m, -1, np.int64)
-        patch_of_scan[patch_scans] = np.arange(len(patch_scans))
-        problem_obs = np.flatnonzero(patch_of_scan[obs_scan] >= 0)
-        problem = PatchProblem(
-            coords=coords[problem_obs],
-            patch=patch_of_scan[obs_scan[problem_obs]],
-            node=obs_node[problem_obs],
-            weight=weight[problem_obs],
-            patch_names=[str(names[s]) for s in patch_scans],
-            check_well_posed=False,  # connected by construction; rigidity: the solver's job
-        )
-    in_problem = set(patch_scans.tolist())
-    unconnected = [str(names[s]) for s in range(m) if s not in in_problem]
-    return Tracks(
-        scan_names=[str(n) for n in names],
-        obs_scan=obs_scan,
-        obs_point=obs_point,
-        obs_node=obs_node,
-        coords=coords,
-        weight=weight,
-        obs_pair=obs_pair,
-        link_obs=link_obs,
-        link_pair=link_pair,
-        pairs=pairs,
-        pair_weights=weights,
-        pair_num_correspondences=counts,
-        num_tracks=int(len(kept_labels)),
-        num_conflicting_tracks=num_conflicting,
-        num_dropped_tracks=0 if split_conflicts else num_conflicting,
-        num_refused_links=int(refused),
-        num_dropped_observations=int(np.count_nonzero(~keep_vert)),
-        patch_scans=patch_scans,
-        problem_observations=problem_obs,
-        unconnected_scans=unconnected,
-        problem=problem,
-        _inputs=(
-            list(points), list(names), pairs, list(correspondences), weights,
-            None if distances is None else list(distances), split_conflicts,
-        ),
-    )  # fmt: skip
+    if not seen.any():
+        return np.zeros(0, np.int64), np.zeros(0, np.int64), None
+    sizes = np.bincount(comp[seen], minlength=comp.max() + 1)
+    best = int(np.argmax(sizes))  # ties: lowest label, i.e. the component of scan 0 first
+    patch_scans = np.flatnonzero((comp == best) & seen)
+    patch_of_scan = np.full(m, -1, np.int64)
+    patch_of_scan[patch_scans] = np.arange(len(patch_scans))
+    problem_obs = np.flatnonzero(patch_of_scan[obs_scan] >= 0)
+    problem = PatchProblem(
+        coords=obs["coords"][problem_obs],
+        patch=patch_of_scan[obs_scan[problem_obs]],
+        node=obs_node[problem_obs],
+        weight=obs["weight"][problem_obs],
+        patch_names=[str(names[s]) for s in patch_scans],
+        check_well_posed=False,  # connected by construction; rigidity: the solver's job
+    )
+    return patch_scans, problem_obs, problem
 
 
 def _split_conflicts(label, num_labels, bad, ea, eb, edge_len, vert_scan):

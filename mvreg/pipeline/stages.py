@@ -9,11 +9,9 @@ else -- loading, the global stage, evaluation, the result -- is the same pipelin
 
 from __future__ import annotations
 
-from collections.abc import Callable, Sequence
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from typing import Protocol
-
-import numpy as np
 
 from mvreg.globalstage.stage import MultiviewPlan, TrackPlan
 from mvreg.pairwise import (
@@ -21,8 +19,9 @@ from mvreg.pairwise import (
     PreprocessedScan,
     align_pairs,
     candidate_pairs,
-    derive_voxel_size,
+    derive_scales,
     preprocess_all,
+    with_noise,
 )
 from mvreg.pairwise.search import connect_unconnected
 from mvreg.pipeline.run import Run
@@ -54,16 +53,6 @@ class Mode(Protocol):
         """Fill ``reg.overlap``, ``reg.truth_errors`` (and mode extras) in place."""
 
 
-def scales_of(voxel: float, pre: Sequence[PreprocessedScan], given: bool) -> Scales:
-    """The run's :class:`Scales` once the scans are preprocessed at ``voxel``."""
-    return Scales(
-        voxel=float(voxel),
-        fine_voxel=float(pre[0].fine_voxel_size) if pre else float(voxel),
-        noise=float(np.median([p.noise for p in pre])) if pre else 0.0,
-        voxel_source="given" if given else "derived",
-    )
-
-
 def free_space_columns(r: PairResult) -> dict:
     return {
         "free_space_violation": r.free_space_violation,
@@ -81,12 +70,12 @@ class UnorderedMode:
 
     def preprocess(self, run: Run, scans):
         cfg = run.cfg.preprocess
-        voxel = derive_voxel_size(scans, cfg)
+        scales = derive_scales(scans, cfg, run.executor)
         run.progress.stage("preprocess", len(scans))
         pre = preprocess_all(
-            scans, voxel, cfg, run.executor.workers, progress=lambda _p: run.progress.advance()
+            scans, scales.voxel, cfg, run.executor, progress=lambda _p: run.progress.advance()
         )
-        return scales_of(voxel, pre, cfg.voxel_size is not None), pre
+        return with_noise(scales, pre), pre
 
     def pair_graph(self, run: Run, scans, pre, scales: Scales) -> PairGraph:
         cfg = run.cfg
@@ -94,10 +83,10 @@ class UnorderedMode:
         run.progress.stage("pairs", len(pairs))
         results = align_pairs(
             pre, pairs, cfg.align, cfg.seed, progress=lambda _r: run.progress.advance(),
-            workers=run.executor.workers,
+            executor=run.executor, scales=scales,
         )  # fmt: skip
         results = connect_unconnected(
-            pre, results, cfg.align, cfg.search, workers=run.executor.workers
+            pre, results, cfg.align, cfg.search, executor=run.executor, scales=scales
         )
         if self.pair_hook is not None:
             results = self.pair_hook(pre, results)

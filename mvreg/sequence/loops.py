@@ -12,8 +12,8 @@ import numpy as np
 from mvreg.config import RegisterConfig
 from mvreg.config.sequence import SequenceConfig
 from mvreg.io.loaders import Scan
-from mvreg.pairwise.align import PairResult
 from mvreg.pairwise.preprocess import PreprocessedScan
+from mvreg.pairwise.result import PairResult
 from mvreg.pipeline.run import NoProgress
 from mvreg.sequence.pairs import align_with_guesses, loop_gate, ransac_fallback, relative_pose
 

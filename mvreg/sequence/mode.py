@@ -23,11 +23,11 @@ import numpy as np
 from mvreg.config import RegisterConfig, load_config
 from mvreg.config.sequence import SequenceConfig
 from mvreg.errors import ConfigError
-from mvreg.pairwise import derive_voxel_size
+from mvreg.pairwise import derive_scales, with_noise
 from mvreg.pipeline.register import run_pipeline
 from mvreg.pipeline.result import Registration
 from mvreg.pipeline.run import Run
-from mvreg.pipeline.stages import PairGraph, scales_of
+from mvreg.pipeline.stages import PairGraph
 from mvreg.sequence.loops import loop_closures
 from mvreg.sequence.odometry import kiss_icp_odometry
 from mvreg.sequence.pairs import chain_poses, sequential_results
@@ -95,13 +95,13 @@ class SequenceMode:
             [s.points for s in scans], self.times, seq, advance=run.progress.advance
         )
         run.timed("odometry")
-        voxel = derive_voxel_size(scans, run.cfg.preprocess)
+        scales = derive_scales(scans, run.cfg.preprocess, run.executor)
         run.progress.stage("preprocess", len(scans))
         pre = []
         for s in scans:
-            pre.append(preprocess_range_scan(s, voxel, run.cfg.preprocess, seq))
+            pre.append(preprocess_range_scan(s, scales.voxel, run.cfg.preprocess, seq))
             run.progress.advance()
-        return scales_of(voxel, pre, run.cfg.preprocess.voxel_size is not None), pre
+        return with_noise(scales, pre), pre
 
     def pair_graph(self, run: Run, scans, pre, scales) -> PairGraph:
         cfg, prog = run.cfg, run.progress

@@ -8,25 +8,15 @@ scans into contact (fitness) is kept.
 
 from __future__ import annotations
 
-import time
 from collections.abc import Callable, Sequence
 
 import numpy as np
-from scipy.spatial import cKDTree
 
 from mvreg.config import RegisterConfig
-from mvreg.config.align import AlignConfig
 from mvreg.config.sequence import SequenceConfig
-from mvreg.executor import ThreadExecutor, single_threaded_blas
+from mvreg.executor import ThreadExecutor
 from mvreg.geometry import invert_transform, transform_points
-from mvreg.pairwise.align import (
-    PairResult,
-    _decide,
-    align_pair,
-    icp_point_to_plane,
-    pair_seed,
-    score_alignment,
-)
+from mvreg.pairwise import PairResult, align_pair, make_aligner, pair_seed, rescore
 from mvreg.pairwise.preprocess import PreprocessedScan
 from mvreg.pipeline.run import NoProgress
 from mvreg.sequence.odometry import Odometry, scale_motion
@@ -38,90 +28,6 @@ def sequential_pairs(num_scans: int, skip_pairs: int = 1) -> list[tuple[int, int
     return [
         (k, k + s) for k in range(num_scans) for s in range(1, skip_pairs + 2) if k + s < num_scans
     ]
-
-
-def refine_from_guess(
-    pre_i: PreprocessedScan,
-    pre_j: PreprocessedScan,
-    T_i_j: np.ndarray,
-    cfg: AlignConfig | None = None,
-    *,
-    i: int = 0,
-    j: int = 1,
-) -> PairResult:
-    """Point-to-plane ICP of scan j onto scan i from the guess ``T_i_j`` (4, 4), scored.
-
-    Feature level (``icp_coarse_distance_voxels``), then fine level
-    (``icp_fine_distance_voxels``), as in :func:`mvreg.pairwise.align_pair` after its
-    RANSAC; scored and accepted by the same rule (:func:`rescore`).
-    """
-    cfg = cfg or AlignConfig()
-    start = time.perf_counter()
-    v = pre_i.voxel_size
-    with single_threaded_blas():
-        T = icp_point_to_plane(
-            pre_j.points, pre_j.normals, pre_i.points, pre_i.normals, _feature_tree(pre_i),
-            T_i_j, cfg.icp_coarse_distance_voxels * v, cfg.icp_max_iterations,
-            cfg.icp_min_normal_cos,
-        )  # fmt: skip
-        T = fine_icp(pre_i, pre_j, T, cfg.icp_fine_distance_voxels, cfg)
-    res = PairResult(
-        i=i,
-        j=j,
-        T_i_j=T,
-        overlap_ratio=0.0,
-        inlier_rmse=float("inf"),
-        num_correspondences=0,
-        fitness=0.0,
-        accepted=False,
-        reason="not scored",
-        names=(pre_i.name, pre_j.name),
-        stats={"init": "odometry", "T_guess": np.asarray(T_i_j).tolist()},
-    )
-    rescore(res, pre_i, pre_j, cfg)
-    res.seconds = time.perf_counter() - start
-    return res
-
-
-def fine_icp(
-    pre_i: PreprocessedScan,
-    pre_j: PreprocessedScan,
-    T_i_j: np.ndarray,
-    distances_voxels: Sequence[float],
-    cfg: AlignConfig,
-) -> np.ndarray:
-    """Point-to-plane ICP on the fine level, one run per distance (in feature voxels),
-    from ``T_i_j`` (4, 4); at most ``cfg.icp_max_source_points`` source points."""
-    v = pre_i.voxel_size
-    stride = max(1, int(np.ceil(len(pre_j.fine_points) / cfg.icp_max_source_points)))
-    src, src_n = pre_j.fine_points[::stride], pre_j.fine_normals[::stride]
-    T = np.asarray(T_i_j, dtype=np.float64)
-    for dist in distances_voxels:
-        T = icp_point_to_plane(
-            src, src_n, pre_i.fine_points, pre_i.fine_normals, pre_i.fine_tree(),
-            T, dist * v, cfg.icp_max_iterations, cfg.icp_min_normal_cos,
-        )  # fmt: skip
-    return T
-
-
-def rescore(
-    res: PairResult, pre_i: PreprocessedScan, pre_j: PreprocessedScan, cfg: AlignConfig
-) -> PairResult:
-    """Score ``res.T_i_j`` again (e.g. after the scans' ``noise`` changed) and decide, in
-    place, by the acceptance rule of :mod:`mvreg.pairwise.align`."""
-    with single_threaded_blas():
-        scores = score_alignment(pre_i, pre_j, res.T_i_j, cfg)
-    res.overlap_ratio = scores["overlap_ratio"]
-    res.inlier_rmse = scores["inlier_rmse"]
-    res.num_correspondences = scores["num_correspondences"]
-    res.fitness = scores["fitness"]
-    res.residual_ratio = scores["residual_ratio"]
-    res.free_space_violation = scores["free_space_violation"]
-    res.unseen_violation = scores["unseen_violation"]
-    res.stats["median_residual"] = scores["median_residual"]
-    res.reason = _decide(scores, cfg)
-    res.accepted = not res.reason
-    return res
 
 
 def calibrate_noise(pre: Sequence[PreprocessedScan], results: Sequence[PairResult]) -> float | None:
@@ -147,12 +53,6 @@ def calibrate_noise(pre: Sequence[PreprocessedScan], results: Sequence[PairResul
     for p in pre:
         p.noise = reference
     return reference
-
-
-def _feature_tree(pre: PreprocessedScan) -> cKDTree:
-    if "tree" not in pre._cache:  # the key align.py uses for the feature-level tree
-        pre._cache["tree"] = cKDTree(pre.points)
-    return pre._cache["tree"]
 
 
 def _guess_distance(pre_j: PreprocessedScan, T_a: np.ndarray, T_b: np.ndarray) -> float:
@@ -186,9 +86,8 @@ def align_with_guesses(
     (:func:`_better`). Runs on ``cfg.workers`` threads; results in the order
     of ``pairs`` with ``stats["kind"] = kind`` and ``stats["init"]`` = the guess's label.
     """
-    for p in pre:  # shared trees, built before the threads start
-        p.fine_tree()
-        _feature_tree(p)
+    icp_guess = make_aligner("icp-guess", cfg.align, cfg.search)
+    icp_guess.prepare(pre)  # shared trees, built before the threads start
 
     def run(n: int) -> PairResult:
         i, j = pairs[n]
@@ -197,7 +96,7 @@ def align_with_guesses(
             if any(_guess_distance(pre[j], guess, t) < 0.5 * pre[j].voxel_size for t in tried):
                 continue
             tried.append(guess)
-            res = refine_from_guess(pre[i], pre[j], guess, cfg.align, i=i, j=j)
+            res = icp_guess.align(pre[i], pre[j], guess, i=i, j=j)
             res.stats |= {"kind": kind, "init": label}
             best = res if best is None else _better(best, res)
         best.stats["guesses_tried"] = len(tried)

@@ -12,7 +12,12 @@ from mvreg.config.sequence import SequenceConfig
 from mvreg.errors import ConfigError
 from mvreg.executor import single_threaded_blas
 from mvreg.io.loaders import Scan
-from mvreg.pairwise.preprocess import PreprocessedScan, _plane_noise, outlier_mask
+from mvreg.pairwise.preprocess import (
+    PreprocessedScan,
+    check_voxel_size,
+    outlier_mask,
+    plane_noise,
+)
 
 
 def preprocess_range_scan(
@@ -35,9 +40,7 @@ def preprocess_range_scan(
 
     cfg = cfg or PreprocessConfig()
     seq = seq or SequenceConfig()
-    v = float(voxel_size)
-    if not v > 0:
-        raise ConfigError(f"voxel_size must be > 0, got {voxel_size}")
+    v = check_voxel_size(voxel_size)
     keep = (
         outlier_mask(scan.points, v, cfg.outlier_min_cell_share)
         if cfg.outlier_min_cell_share > 0
@@ -76,7 +79,7 @@ def preprocess_range_scan(
             fine_voxel_size=fine_v,
             fine_points=fine_pts,
             fine_normals=fine_nrm,
-            noise=_plane_noise(fine_pts, fine_nrm),
+            noise=plane_noise(fine_pts, fine_nrm),
             orientation="sensor origin",
             num_raw_points=scan.num_points,
             num_outliers_removed=int(np.count_nonzero(~keep)),

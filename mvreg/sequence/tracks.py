@@ -19,10 +19,11 @@ from mvreg.geometry import invert_transform, transform_points
 from mvreg.globalstage.refine import refine_rounds
 from mvreg.globalstage.robust import pair_residuals, robust_weights
 from mvreg.globalstage.solve import GlobalSolution, max_translation_change
-from mvreg.pairwise.align import PairResult
+from mvreg.pairwise import fine_icp, rescore
 from mvreg.pairwise.preprocess import PreprocessedScan
+from mvreg.pairwise.result import PairResult
 from mvreg.pairwise.tracks import Tracks, build_tracks, tracks_from_correspondences
-from mvreg.sequence.pairs import fine_icp, rescore, threads_map
+from mvreg.sequence.pairs import threads_map
 
 # Refinement re-aligns a pair whose points lie this many voxels apart under the global poses.
 
@@ -131,7 +132,7 @@ def refine_pose_graph(
             guess = invert_transform(poses[r.i]) @ poses[r.j]
             with single_threaded_blas():
                 T = fine_icp(
-                    pre[r.i], pre[r.j], guess, cfg.align.icp_fine_distance_voxels, cfg.align
+                    pre[r.i], pre[r.j], guess, cfg.align.icp_fine_distance_voxels, cfg.align, voxel
                 )
             new = dataclasses.replace(r, T_i_j=T, stats=dict(r.stats))
             new.stats["refined_from"] = "global poses"

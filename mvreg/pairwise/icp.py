@@ -1,0 +1,163 @@
+"""Point-to-plane ICP between two scans, and nearest neighbours with agreeing normals.
+
+Takes two preprocessed scans (or plain point and normal arrays) and an initial
+``T_i_j`` (4, 4, scan j into scan i's frame); returns the refined ``T_i_j``. Distances
+are given in data units or, for the scan-level helpers, as multiples of the run's
+feature voxel ``voxel`` (:class:`mvreg.scales.Scales`). Deterministic (NumPy and SciPy
+KD-trees, no random choices); KD-trees of a scan are built once and cached on it.
+
+* :func:`icp_point_to_plane`: the ICP itself, on arrays.
+* :func:`coarse_icp`: on the feature level (``icp_coarse_distance_voxels``).
+* :func:`fine_icp`: on the fine level, one run per distance, at most
+  ``icp_max_source_points`` source points.
+* :func:`nearest_with_normals`: per point, the nearest point of the other scan within a
+  distance whose normal agrees, and the residual to its tangent plane.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+
+import numpy as np
+from scipy.spatial import cKDTree
+
+from mvreg.config.align import AlignConfig
+from mvreg.geometry import rotation_from_vector, transform_points
+from mvreg.pairwise.preprocess import PreprocessedScan
+
+
+def feature_level_tree(pre: PreprocessedScan) -> cKDTree:
+    """KD-tree of the scan's feature-level points, cached on the scan."""
+    if "tree" not in pre._cache:
+        pre._cache["tree"] = cKDTree(pre.points)
+    return pre._cache["tree"]
+
+
+def icp_point_to_plane(
+    source: np.ndarray,
+    source_normals: np.ndarray,
+    target: np.ndarray,
+    target_normals: np.ndarray,
+    target_tree: cKDTree,
+    T_target_source: np.ndarray,
+    max_dist: float,
+    max_iterations: int = 30,
+    min_normal_cos: float = 0.5,
+    tolerance: float = 5e-3,
+) -> np.ndarray:
+    """Point-to-plane ICP (Gauss-Newton on a linearised rotation), deterministic.
+
+    Pairs each source point with its nearest target point within ``max_dist`` whose
+    normal agrees (cosine >= ``min_normal_cos``), minimises the squared distances to the
+    target tangent planes, and stops when an update moves no point by more than
+    ``tolerance * max_dist`` (changing correspondences make it jitter at small scales), or
+    when it is back within that of the pose two steps before: two correspondence sets that
+    each pull to the other's pose make a 2-cycle, which further steps only repeat.
+    Returns the refined (4, 4) ``T_target_source``.
+    """
+    T = np.array(T_target_source, dtype=np.float64)
+    extent = float(np.max(np.linalg.norm(source - source.mean(0), axis=1))) + 1e-300
+    centroid = source.mean(0)
+
+    def distance(Ta, Tb):  # how far the two poses put the source points apart (about)
+        turn = np.linalg.norm(Ta[:3, :3] - Tb[:3, :3]) / np.sqrt(2.0)
+        return turn * extent + np.linalg.norm(
+            (Ta[:3, :3] - Tb[:3, :3]) @ centroid + Ta[:3, 3] - Tb[:3, 3]
+        )
+
+    before, previous = None, T  # the poses two steps and one step back
+    for _ in range(max_iterations):
+        q = transform_points(T, source)
+        d, nn = target_tree.query(q, distance_upper_bound=max_dist)
+        ok = np.flatnonzero(np.isfinite(d))
+        if len(ok) < 6:
+            break
+        n = target_normals[nn[ok]]
+        agree = np.einsum("ij,ij->i", n, source_normals[ok] @ T[:3, :3].T) >= min_normal_cos
+        ok, n = ok[agree], n[agree]
+        if len(ok) < 6:
+            break
+        x = _plane_step(q[ok], target[nn[ok]], n)
+        if x is None:
+            break
+        step = np.eye(4)
+        step[:3, :3] = rotation_from_vector(x[:3])
+        step[:3, 3] = x[3:]
+        before, previous, T = previous, T, step @ T
+        if np.linalg.norm(x[:3]) * extent + np.linalg.norm(x[3:]) < tolerance * max_dist:
+            break
+        if before is not None and distance(T, before) < tolerance * max_dist:
+            break
+    return T
+
+
+def _plane_step(p: np.ndarray, target: np.ndarray, n: np.ndarray) -> np.ndarray | None:
+    """The (6,) Gauss-Newton step (rotation vector, translation) moving points ``p`` onto
+    the planes through ``target`` with normals ``n``; None when singular."""
+    r = np.einsum("ij,ij->i", p - target, n)
+    a = np.empty((len(p), 6))
+    a[:, 0] = p[:, 1] * n[:, 2] - p[:, 2] * n[:, 1]
+    a[:, 1] = p[:, 2] * n[:, 0] - p[:, 0] * n[:, 2]
+    a[:, 2] = p[:, 0] * n[:, 1] - p[:, 1] * n[:, 0]
+    a[:, 3:] = n
+    ata = a.T @ a
+    try:
+        return np.linalg.solve(ata + 1e-12 * np.trace(ata) * np.eye(6), -a.T @ r)
+    except np.linalg.LinAlgError:
+        return None
+
+
+def coarse_icp(
+    pre_i: PreprocessedScan,
+    pre_j: PreprocessedScan,
+    T_i_j: np.ndarray,
+    cfg: AlignConfig,
+    voxel: float,
+    iterations: int | None = None,
+) -> np.ndarray:
+    """Feature-level ICP of scan j onto scan i from ``T_i_j`` within
+    ``cfg.icp_coarse_distance_voxels * voxel``, at most ``iterations`` iterations
+    (default ``cfg.icp_max_iterations``)."""
+    return icp_point_to_plane(
+        pre_j.points, pre_j.normals, pre_i.points, pre_i.normals, feature_level_tree(pre_i),
+        T_i_j, cfg.icp_coarse_distance_voxels * voxel,
+        cfg.icp_max_iterations if iterations is None else iterations, cfg.icp_min_normal_cos,
+    )  # fmt: skip
+
+
+def fine_icp(
+    pre_i: PreprocessedScan,
+    pre_j: PreprocessedScan,
+    T_i_j: np.ndarray,
+    distances_voxels: Sequence[float],
+    cfg: AlignConfig,
+    voxel: float,
+) -> np.ndarray:
+    """Point-to-plane ICP on the fine level, one run per distance (in feature voxels
+    ``voxel``), from ``T_i_j`` (4, 4); at most ``cfg.icp_max_source_points`` source points."""
+    stride = max(1, int(np.ceil(len(pre_j.fine_points) / cfg.icp_max_source_points)))
+    src, src_n = pre_j.fine_points[::stride], pre_j.fine_normals[::stride]
+    T = np.asarray(T_i_j, dtype=np.float64)
+    for dist in distances_voxels:
+        T = icp_point_to_plane(
+            src, src_n, pre_i.fine_points, pre_i.fine_normals, pre_i.fine_tree(),
+            T, dist * voxel, cfg.icp_max_iterations, cfg.icp_min_normal_cos,
+        )  # fmt: skip
+    return T
+
+
+def nearest_with_normals(tree, pts_dst, nrm_dst, pts_src, nrm_src, T_dst_src, max_dist, cos):
+    """Per source point: nearest destination index (-1 if none within max_dist or if the
+    normals disagree) and the residual to that point's tangent plane (inf if none)."""
+    q = transform_points(T_dst_src, pts_src)
+    d, nn = tree.query(q, distance_upper_bound=max_dist)
+    found = np.flatnonzero(np.isfinite(d))
+    nearest = np.full(len(pts_src), -1, np.int64)
+    resid = np.full(len(pts_src), np.inf)
+    k = nn[found]
+    n_src = nrm_src[found] @ T_dst_src[:3, :3].T
+    agree = np.einsum("ij,ij->i", nrm_dst[k], n_src) >= cos
+    found, k = found[agree], k[agree]
+    nearest[found] = k
+    resid[found] = np.abs(np.einsum("ij,ij->i", nrm_dst[k], q[found] - pts_dst[k]))
+    return nearest, resid

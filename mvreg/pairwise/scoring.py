@@ -1,0 +1,253 @@
+"""How well a pose ``T_i_j`` fits two scans: the scores the acceptance rule reads.
+
+Takes two preprocessed scans, a pose ``T_i_j`` (scan j into scan i's frame), the
+``AlignConfig`` and the run's :class:`~mvreg.scales.Scales` (``v`` = feature voxel);
+returns plain numbers. Deterministic; read-only on the scans except for cached
+structures (KD-trees, depth grids). ``noise`` = mean of the two scans' own
+:attr:`~mvreg.pairwise.preprocess.PreprocessedScan.noise`.
+
+* a *neighbour* of a point is the nearest point of the other scan within
+  ``score_distance_voxels * v`` whose normal agrees (cosine >= ``score_min_normal_cos``);
+  its *residual* is the distance to the neighbour's tangent plane;
+* ``fitness``: fraction of scan j's points with a neighbour (Open3D's meaning);
+* ``residual_ratio``: median residual / noise: about 1 for a correct alignment (residuals
+  like the scans' own noise), large for a wrong one pressed into contact by ICP;
+* ``overlap_ratio``: fraction of the better-covered scan whose residual is at most
+  ``tight_residual_ratio * noise``: the part that really coincides;
+* ``inlier_rmse``: root mean square residual (data units); ``median_residual``;
+* ``num_correspondences``: mutual neighbours;
+* ``free_space_violation`` (:func:`free_space_violation`): for scans that are single views
+  (:func:`~mvreg.pairwise.preprocess.view_direction`), the larger of the two scans'
+  shares of points that, seen from the other scan's sensor direction, lie clearly in
+  front of the surface the other scan measured there (it saw through empty space);
+* ``unseen_violation`` (:func:`unseen_violation`): the share of points facing the other
+  view's sensor where that view saw nothing at all.
+
+Both view tests are NaN when either scan is not a single view (the test is skipped).
+Measured values on real and synthetic scans: ``docs/design/pairwise.md``.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from typing import Literal
+
+import numpy as np
+from scipy.spatial import cKDTree
+
+from mvreg.config.align import AlignConfig
+from mvreg.geometry import invert_transform, transform_points
+from mvreg.pairwise.icp import feature_level_tree, nearest_with_normals
+from mvreg.pairwise.preprocess import PreprocessedScan, scan_scales
+from mvreg.scales import Scales
+
+
+def score_alignment(
+    pre_i: PreprocessedScan,
+    pre_j: PreprocessedScan,
+    T_i_j: np.ndarray,
+    cfg: AlignConfig | None = None,
+    level: Literal["fine", "feature"] = "fine",
+    *,
+    scales: Scales | None = None,
+) -> dict:
+    """Quality scores of ``T_i_j`` (see the module docstring) on the fine or feature level.
+
+    Returns a dict: fitness, overlap_ratio, residual_ratio, median_residual, inlier_rmse,
+    num_correspondences, free_space_violation and unseen_violation (always on the fine
+    level). ``scales``: the run's (default: those ``pre_i`` was preprocessed at).
+    """
+    cfg = cfg or AlignConfig()
+    scales = scan_scales(pre_i) if scales is None else scales
+    if level == "fine":
+        pi, ni, pj, nj = (
+            pre_i.fine_points,
+            pre_i.fine_normals,
+            pre_j.fine_points,
+            pre_j.fine_normals,
+        )
+        ti, tj = pre_i.fine_tree(), pre_j.fine_tree()
+    else:
+        pi, ni, pj, nj = pre_i.points, pre_i.normals, pre_j.points, pre_j.normals
+        ti, tj = feature_level_tree(pre_i), feature_level_tree(pre_j)
+    max_dist, cos = cfg.score_distance_voxels * scales.voxel, cfg.score_min_normal_cos
+    near_j, r_j = nearest_with_normals(ti, pi, ni, pj, nj, T_i_j, max_dist, cos)
+    near_i, r_i = nearest_with_normals(tj, pj, nj, pi, ni, invert_transform(T_i_j), max_dist, cos)
+    has_j, has_i = near_j >= 0, near_i >= 0
+    mutual = np.count_nonzero(near_i[near_j[has_j]] == np.flatnonzero(has_j))
+    noise = 0.5 * (pre_i.noise + pre_j.noise)
+    res = np.concatenate([r_i[has_i], r_j[has_j]])
+    tight = cfg.tight_residual_ratio * noise
+    median = float(np.median(res)) if len(res) else float("inf")
+    return {
+        "fitness": float(np.mean(has_j)),
+        "overlap_ratio": max(float(np.mean(r_i <= tight)), float(np.mean(r_j <= tight))),
+        "residual_ratio": median / noise,
+        "median_residual": median,
+        "inlier_rmse": float(np.sqrt(np.mean(res**2))) if len(res) else float("inf"),
+        "num_correspondences": int(mutual),
+        "free_space_violation": free_space_violation(pre_i, pre_j, T_i_j, cfg, scales=scales),
+        "unseen_violation": unseen_violation(pre_i, pre_j, T_i_j, cfg, scales=scales),
+    }
+
+
+# ---------------------------------------------------------------------------- view tests
+
+
+def view_frame(pre: PreprocessedScan):
+    """(a, b, d): two unit vectors across the scan's view direction ``d``, and ``d``;
+    None when the scan is not a single view."""
+    if pre.view_direction is None:
+        return None
+    if "view_frame" not in pre._cache:
+        d = np.asarray(pre.view_direction, dtype=np.float64)
+        a = np.cross(d, [1.0, 0.0, 0.0] if abs(d[0]) < 0.9 else [0.0, 1.0, 0.0])
+        a /= np.linalg.norm(a)
+        pre._cache["view_frame"] = (a, np.cross(d, a), d)
+    return pre._cache["view_frame"]
+
+
+def depth_grid(pre: PreprocessedScan, fine_voxel: float):
+    """Front-most depth of the fine points per cell (1.5 fine voxels) of a grid across the
+    view direction: (a, b, d, cell, sorted cell keys, depths); None without a view."""
+    frame = view_frame(pre)
+    if frame is None:
+        return None
+    cell = 1.5 * fine_voxel
+    cached = pre._cache.get("depth_grid")
+    if cached is None or cached[3] != cell:
+        a, b, d = frame
+        keys = cell_keys(pre.fine_points, a, b, cell)
+        depth = pre.fine_points @ d
+        order = np.lexsort((depth, keys))
+        keys, depth = keys[order], depth[order]
+        last = np.flatnonzero(np.r_[keys[1:] != keys[:-1], True])
+        cached = pre._cache["depth_grid"] = (a, b, d, cell, keys[last], depth[last])
+    return cached
+
+
+def lateral_tree(pre: PreprocessedScan):
+    """(F (2, 3), d, KD-tree of the fine points projected by F across the view direction
+    d); None without a view."""
+    frame = view_frame(pre)
+    if frame is None:
+        return None
+    if "lateral_tree" not in pre._cache:
+        a, b, d = frame
+        F = np.stack([a, b])
+        pre._cache["lateral_tree"] = (F, d, cKDTree(pre.fine_points @ F.T))
+    return pre._cache["lateral_tree"]
+
+
+def cell_keys(points: np.ndarray, a: np.ndarray, b: np.ndarray, cell: float) -> np.ndarray:
+    """One int64 key per point: its cell of a square grid of side ``cell`` spanned by a, b."""
+    u = np.floor(points @ a / cell).astype(np.int64)
+    w = np.floor(points @ b / cell).astype(np.int64)
+    return (u << 32) + w  # exact for |u|, |w| < 2**31 cells
+
+
+def _violations(grid, points, normals, tolerance, min_cos, min_count) -> float:
+    """Share of ``points`` (in the grid scan's frame) in front of its measured surface."""
+    a, b, d, cell, keys, front = grid
+    cos = normals @ d
+    facing = cos >= min_cos
+    p = points[facing]
+    k = cell_keys(p, a, b, cell)
+    pos = np.minimum(np.searchsorted(keys, k), len(keys) - 1)
+    seen = keys[pos] == k
+    slope = np.sqrt(np.clip(1.0 - cos[facing] ** 2, 0.0, 1.0)) / np.maximum(cos[facing], 1e-3)
+    ahead = p @ d > front[pos] + tolerance + cell * slope
+    bad = _clustered(p[seen & ahead], cell)
+    return float(bad / max(np.count_nonzero(seen), min_count))
+
+
+def _clustered(points: np.ndarray, radius: float, min_points: int = 3) -> int:
+    """How many of ``points`` have at least ``min_points`` of them (itself included)
+    within ``radius``: a surface put in the wrong place violates in patches, stray
+    outlier points one by one. (Not used for the unseen test: a pose turned far off
+    leaves only a few facing points, unclustered.)"""
+    if len(points) < min_points:
+        return 0
+    near = cKDTree(points).query_ball_point(points, radius, return_length=True)
+    return int(np.count_nonzero(near >= min_points))
+
+
+def free_space_violation(
+    pre_i, pre_j, T_i_j: np.ndarray, cfg: AlignConfig | None = None, *, scales: Scales | None = None
+) -> float:
+    """Larger of the two scans' shares of points seen through empty space.
+
+    ``pre_i``, ``pre_j``: PreprocessedScans; ``T_i_j`` maps j into i's frame.
+
+    Only points facing the other scan's sensor (cosine >= ``free_space_min_facing_cos``)
+    count, and the depth slack is ``free_space_tolerance_voxels * v`` plus the depth a
+    cell spans at the point's slope; violating points count only in clusters
+    (:func:`_clustered`). NaN when either scan has no view direction.
+    """
+    cfg = cfg or AlignConfig()
+    scales = scan_scales(pre_i) if scales is None else scales
+    grid_i, grid_j = depth_grid(pre_i, scales.fine_voxel), depth_grid(pre_j, scales.fine_voxel)
+    if grid_i is None or grid_j is None:
+        return float("nan")
+    tol = cfg.free_space_tolerance_voxels * scales.voxel
+    args = (tol, cfg.free_space_min_facing_cos, cfg.min_correspondences)
+    T_j_i = invert_transform(T_i_j)
+    in_i = _violations(
+        grid_i, transform_points(T_i_j, pre_j.fine_points), pre_j.fine_normals @ T_i_j[:3, :3].T,
+        *args,
+    )  # fmt: skip
+    in_j = _violations(
+        grid_j, transform_points(T_j_i, pre_i.fine_points), pre_i.fine_normals @ T_j_i[:3, :3].T,
+        *args,
+    )  # fmt: skip
+    return max(in_i, in_j)
+
+
+def _unseen(lateral, points, normals, radius, min_cos, min_count) -> float:
+    F, d, tree = lateral
+    facing = normals @ d >= min_cos
+    dist, _ = tree.query(points[facing] @ F.T, distance_upper_bound=radius)
+    return float(np.count_nonzero(np.isinf(dist)) / max(np.count_nonzero(facing), min_count))
+
+
+def unseen_violation(
+    pre_i, pre_j, T_i_j: np.ndarray, cfg: AlignConfig | None = None, *, scales: Scales | None = None
+) -> float:
+    """Larger of the two scans' shares of points the other view should have seen but did not.
+
+    ``pre_i``, ``pre_j``: PreprocessedScans; ``T_i_j`` maps j into i's frame.
+
+    A point of scan j that faces scan i's sensor (cosine >= ``free_space_min_facing_cos``
+    with i's view direction) and is not hidden would have been measured by i, so under a
+    correct alignment i has points near it across the view direction (at some depth: in
+    front of it if it is hidden). When i has no point within ``unseen_radius_voxels * v``
+    across the view direction, i's line of sight there met nothing: the point sits in
+    empty space. This catches what :func:`free_space_violation` (points in front of a
+    surface i measured) cannot, such as a part put where the other view saw only
+    background. It needs no depth, so the orthographic approximation of a perspective
+    view matters little. NaN when either scan has no view direction.
+    """
+    cfg = cfg or AlignConfig()
+    scales = scan_scales(pre_i) if scales is None else scales
+    lat_i, lat_j = lateral_tree(pre_i), lateral_tree(pre_j)
+    if lat_i is None or lat_j is None:
+        return float("nan")
+    args = (
+        cfg.unseen_radius_voxels * scales.voxel,
+        cfg.free_space_min_facing_cos,
+        cfg.min_correspondences,
+    )
+    R, t = T_i_j[:3, :3], T_i_j[:3, 3]
+    in_i = _unseen(lat_i, pre_j.fine_points @ R.T + t, pre_j.fine_normals @ R.T, *args)
+    in_j = _unseen(lat_j, (pre_i.fine_points - t) @ R, pre_i.fine_normals @ R, *args)
+    return max(in_i, in_j)
+
+
+def prepare_scans(pre: Sequence[PreprocessedScan], scales: Scales | None = None) -> None:
+    """Build the scans' cached structures that scoring and ICP read (KD-trees on both
+    levels, depth grids, lateral trees), so that threads share them afterwards."""
+    for p in pre:
+        p.fine_tree()
+        feature_level_tree(p)
+        depth_grid(p, (scan_scales(p) if scales is None else scales).fine_voxel)
+        lateral_tree(p)

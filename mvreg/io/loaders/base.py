@@ -12,6 +12,9 @@ from mvreg.errors import ScanFileError
 
 #: Default minimum number of valid points a scan must have.
 DEFAULT_MIN_POINTS = 100
+#: Default largest number of points a scan may have (``max_points_per_scan``): about
+#: 1.2 GB of float64 coordinates, and several times that while registering.
+DEFAULT_MAX_POINTS = 50_000_000
 
 
 @dataclass
@@ -85,6 +88,26 @@ def _optional_rows(path: Path, a: np.ndarray | None, n: int, what: str) -> np.nd
     return a
 
 
+def count_distinct(points: np.ndarray) -> int:
+    """Number of distinct rows of an (N, 3) float64 array."""
+    rows = np.ascontiguousarray(points).view(np.dtype((np.void, points.dtype.itemsize * 3)))
+    return int(np.unique(rows.ravel()).shape[0])
+
+
+def _check_distinct(path: Path, pts: np.ndarray, min_points: int) -> None:
+    """Refuse a scan with fewer than ``min_points`` distinct points (duplicates only)."""
+    head = pts[: 4 * max(min_points, 1)]
+    if count_distinct(head) >= min_points:
+        return  # the common case, decided on a few rows
+    k = count_distinct(pts)
+    if k < min_points:
+        raise ScanFileError(
+            path,
+            f"{len(pts)} points but only {k} distinct; need min_points = {min_points} "
+            "distinct points",
+        )
+
+
 def validate_cloud(path: Path, raw: RawCloud, min_points: int = DEFAULT_MIN_POINTS) -> Scan:
     """Common checks of every loaded file -> :class:`Scan`.
 
@@ -117,6 +140,7 @@ def validate_cloud(path: Path, raw: RawCloud, min_points: int = DEFAULT_MIN_POIN
         normals = None
     if colors is not None and not np.all(np.isfinite(colors)):
         colors = None
+    _check_distinct(path, pts, min_points)
     origin = None
     if raw.sensor_origin is not None:
         origin = np.asarray(raw.sensor_origin, dtype=np.float64).reshape(3)

@@ -95,8 +95,10 @@ def parse_rho(value: str) -> str | float:
 
 
 def _check_out_file(path: Path, force: bool):
-    from mvreg.errors import OutputExistsError
+    from mvreg.errors import InputError, OutputExistsError
 
+    if not str(path) or path.is_dir():
+        raise InputError(f"{path or repr('')}: is a folder; --out must name a file")
     if path.exists() and not force:
         raise OutputExistsError(f"{path} exists (use --force to overwrite)")
 
@@ -123,7 +125,7 @@ def solve(
     allow_reflections: Annotated[
         bool, typer.Option(help="Solve over O(d) instead of SO(d).")
     ] = False,
-    seed: Annotated[int, typer.Option(help="Seed of the iterative eigensolvers.")] = 0,
+    seed: Annotated[int, typer.Option(min=0, help="Seed of the iterative eigensolvers.")] = 0,
     force: Annotated[bool, typer.Option(help="Overwrite an existing result.")] = False,
 ):
     """Solve a patch problem: rotations, translations and a certificate of optimality."""
@@ -510,11 +512,16 @@ def eval_cmd(
         from mvreg.metrics import pose_errors
 
         poses_path = out / "poses.json" if out.is_dir() else out
-        est = read_poses_json(poses_path)
-        tru = read_poses_json(truth)
+        est = read_poses_json(poses_path, dim=None)
+        tru = read_poses_json(truth, dim=None)
         common = [n for n in est if n in tru]
         if len(common) < 2:
-            raise InputError(f"{truth}: fewer than 2 scans in common with {poses_path}")
+            raise InputError(
+                f"{truth}: {len(common)} scan(s) in common with {poses_path}, need at least 2"
+            )
+        d_est, d_tru = next(iter(est.values())).shape[0], next(iter(tru.values())).shape[0]
+        if d_est != d_tru:
+            raise InputError(f"{truth}: {d_tru}x{d_tru} poses, {poses_path} has {d_est}x{d_est}")
         err = pose_errors(np.stack([est[n] for n in common]), np.stack([tru[n] for n in common]))
         t = Table(title=f"{poses_path} vs {truth}")
         t.add_column("scan")

@@ -132,7 +132,7 @@ def load_scan(
         raise
     except OSError as e:
         raise ScanFileError(path, f"cannot read file ({e.strerror or e})") from e
-    except (ValueError, RuntimeError, MemoryError, UnicodeError) as e:
+    except Exception as e:  # noqa: BLE001 - whatever a format library raises: name the file
         raise ScanFileError(path, f"cannot read file ({type(e).__name__}: {e})") from e
     return validate_cloud(path, raw, min_points=min_points)
 

@@ -235,18 +235,16 @@ def _check_binary(path: Path, body: int, elements: list[Element], what: str) -> 
     if any(e.row_bytes is None for e in elements):
         return  # list properties (faces): sizes not known without reading them
     need = sum(e.count * e.row_bytes for e in elements)
-    if body < need:
-        raise ScanFileError(
-            path, f"truncated {what}: {body} data bytes, the header declares {need}"
-        )
-    if body > need:
-        last = elements[-1]
-        held = last.count + (body - need) // max(last.row_bytes, 1)
-        raise ScanFileError(
-            path,
-            f"the header declares {last.count} {last.name} rows ({need} bytes), the file "
-            f"holds {body} data bytes (about {held} rows)",
-        )
+    if body == need:
+        return
+    last = elements[-1]
+    held = max(0, body - need + last.count * last.row_bytes) // max(last.row_bytes, 1)
+    raise ScanFileError(
+        path,
+        ("truncated " + what + ": " if body < need else "")
+        + f"the header declares {last.count} {last.name} rows ({need} data bytes), the "
+        f"file holds {body} data bytes ({held} rows)",
+    )
 
 
 def check_ply(path: Path) -> None:

@@ -5,6 +5,7 @@ Heavy imports happen inside the commands so that `mvreg --help` is instant.
 
 from __future__ import annotations
 
+import os
 import sys
 from pathlib import Path
 from typing import Annotated
@@ -65,10 +66,28 @@ def fail(exc: BaseException) -> typer.Exit:
     return typer.Exit(code)
 
 
+class Terminated(BaseException):
+    """Raised in the main thread by the SIGTERM handler of `run_guarded`."""
+
+
+def _on_sigterm(signum, frame):
+    raise Terminated()
+
+
 def run_guarded(fn, *args, **kwargs):
-    """Call fn; turn MvregError (and, without --debug, anything else) into an exit code."""
+    """Call fn; turn MvregError (and, without --debug, anything else) into an exit code.
+
+    SIGINT exits 130 and SIGTERM 143, each with a message; both unwind the call (so an
+    output folder being written is discarded, the previous one kept).
+    """
+    import signal
+    import threading
+
     from mvreg.errors import MvregError
 
+    previous = None
+    if threading.current_thread() is threading.main_thread():
+        previous = signal.signal(signal.SIGTERM, _on_sigterm)
     try:
         return fn(*args, **kwargs)
     except typer.Exit:
@@ -78,8 +97,14 @@ def run_guarded(fn, *args, **kwargs):
     except KeyboardInterrupt:
         typer.echo("mvreg: interrupted", err=True)
         raise typer.Exit(130) from None
+    except Terminated:
+        typer.echo("mvreg: terminated (SIGTERM); this run's outputs were discarded", err=True)
+        raise typer.Exit(143) from None
     except Exception as e:  # noqa: BLE001 - last resort: one line, unless --debug
         raise fail(e) from None
+    finally:
+        if previous is not None:
+            signal.signal(signal.SIGTERM, previous)
 
 
 def parse_rho(value: str) -> str | float:
@@ -391,7 +416,8 @@ def register_folder(
     """The body of `mvreg register` (also used by `mvreg demo`). Returns the exit code."""
     from mvreg.config import load_config
     from mvreg.errors import ConfigError, OutputExistsError
-    from mvreg.io.writers import prepare_output, residual_heatmap, write_registration
+    from mvreg.io.output_folder import OutputFolder
+    from mvreg.io.writers import residual_heatmap, write_registration
     from mvreg.pipeline import register as run_register
 
     if sequence:
@@ -412,24 +438,37 @@ def register_folder(
             "seed": seed,
         },
     )
-    out = prepare_output(out, force)
-    rrd_path = None if no_rrd else (rrd if rrd is not None else out / "recording.rrd")
+    output = OutputFolder(out, force=force, inputs=[folder])
+    output.check()  # refuse before spending time
     if rrd is not None and rrd.exists() and not force:
         raise OutputExistsError(f"{rrd} exists (use --force to overwrite)")
-    rec = make_recorder(rrd_path, spawn=spawn, recording_id=f"mvreg-{cfg.seed}")
-    for w in getattr(rec, "warnings", []):
-        typer.echo(f"mvreg: warning: {w}", err=True)
-    with rec:
-        reg = run_register(
-            folder, cfg, recorder=rec, progress=RichProgress() if progress else None, truth=truth
-        )
-        if reg.T_world_scan:
-            pts, res = residual_heatmap(reg)
-            rec.log_residual_heatmap(pts, res)
-        paths = write_registration(reg, out)
+    with output as staging:  # written into staging, swapped in on success
+        rrd_path = None if no_rrd else (rrd if rrd is not None else staging / "recording.rrd")
+        rec = make_recorder(rrd_path, spawn=spawn, recording_id=f"mvreg-{cfg.seed}")
+        for w in getattr(rec, "warnings", []):
+            typer.echo(f"mvreg: warning: {w}", err=True)
+        with rec:
+            reg = run_register(
+                folder,
+                cfg,
+                recorder=rec,
+                progress=RichProgress() if progress else None,
+                truth=truth,
+            )
+            if reg.T_world_scan:
+                pts, res = residual_heatmap(reg)
+                rec.log_residual_heatmap(pts, res)
+            paths = write_registration(reg, staging)
+        written = [output.final_path(p) for p in paths.values() if p.exists()]
+    if rrd_path is not None:
+        rrd_path = output.final_path(rrd_path)
+        if rrd_path.is_file():  # rerun writes 0600
+            umask = os.umask(0)
+            os.umask(umask)
+            os.chmod(rrd_path, 0o666 & ~umask)
     _summary_table(reg)
     typer.echo(
-        f"wrote {', '.join(str(p) for p in paths.values() if p.exists())}"
+        f"wrote {', '.join(str(p) for p in written)}"
         + (f", {rrd_path}" if rrd_path is not None else "")
     )
     return 3 if reg.unregistered else 0

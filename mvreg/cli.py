@@ -443,7 +443,7 @@ def register_folder(
     if rrd is not None and rrd.exists() and not force:
         raise OutputExistsError(f"{rrd} exists (use --force to overwrite)")
     with output as staging:  # written into staging, swapped in on success
-        rrd_path = None if no_rrd else (rrd if rrd is not None else staging / "recording.rrd")
+        rrd_path = None if no_rrd else output.staged(rrd or staging / "recording.rrd")
         rec = make_recorder(rrd_path, spawn=spawn, recording_id=f"mvreg-{cfg.seed}")
         for w in getattr(rec, "warnings", []):
             typer.echo(f"mvreg: warning: {w}", err=True)

@@ -71,6 +71,14 @@ def test_failure_keeps_the_old_set(tmp_path):
     assert contents(out) == before and leftovers(tmp_path) == []
 
 
+def test_paths_inside_out_are_staged(tmp_path):
+    output = OutputFolder(tmp_path / "out")
+    with output as staging:
+        assert output.staged(tmp_path / "out" / "x.rrd") == staging / "x.rrd"
+        assert output.staged(tmp_path / "y.rrd") == tmp_path / "y.rrd"
+        assert output.final_path(staging / "x.rrd") == tmp_path / "out" / "x.rrd"
+
+
 def test_modes_follow_the_umask(tmp_path):
     old = os.umask(0o022)
     try:

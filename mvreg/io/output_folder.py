@@ -182,6 +182,14 @@ class OutputFolder:
             exc.relocate(self.staging, self.shown)
         return False
 
+    def staged(self, path: str | os.PathLike) -> Path:
+        """Where to write a file meant for OUT (inside the staging folder); others unchanged."""
+        path = Path(path)
+        try:
+            return self.staging / path.absolute().relative_to(self.out)
+        except ValueError:
+            return path
+
     def final_path(self, path: str | os.PathLike) -> Path:
         """Where a file written into the staging folder ends up (others unchanged)."""
         path = Path(path)

@@ -226,8 +226,45 @@ LINK_CASES = [
     Case("register-negative-seed", _link("dir"), 2, ("seed",)),
 ]
 
+
+def _las_bytes(count: int = 300, held: int = 300, vlrs: int = 0, offset: int = 227) -> bytes:
+    import struct
+
+    head = bytearray(227)
+    head[:4] = b"LASF"
+    head[24:26] = bytes([1, 2])
+    struct.pack_into("<HII", head, 94, 227, offset, vlrs)
+    struct.pack_into("<BHI", head, 104, 0, 20, count)
+    struct.pack_into("<6d", head, 131, 1e-3, 1e-3, 1e-3, 0.0, 0.0, 0.0)
+    return (
+        bytes(head)
+        + bytes(offset - 227 if offset < 10**6 else 0)
+        + RNG.integers(0, 9, 20 * held).astype(np.uint8).tobytes()
+    )
+
+
+def _las_cases() -> list[Case]:
+    return [
+        _scan_case(
+            "las-truncated", "t.las", _las_bytes(300, 120), "declares 300 points", "holds 120"
+        ),
+        _scan_case("las-huge-count", "h.las", _las_bytes(2**32 - 1, 10), "declares 4294967295"),
+        _scan_case("las-vlrs-do-not-fit", "v.las", _las_bytes(vlrs=10**8), "VLRs do not fit"),
+        _scan_case("las-offset-beyond-end", "o.las", _las_bytes(offset=10**9, held=0), "corrupt"),
+        _scan_case("las-short-header", "s.las", b"LASF" + bytes(100), "truncated LAS header"),
+        _scan_case("las-bad-signature", "b.las", b"LASX" + bytes(400), "bad signature"),
+        _scan_case("laz-garbage", "g.laz", b"LASF" + bytes(range(256)) * 4),
+        _scan_case("e57-garbage", "g.e57", b"ASTM-E57" * 100),
+    ]
+
+
 SCAN_CASES = (
-    _bad_token_cases() + _width_and_count_cases() + _garbage_cases() + _content_cases() + LINK_CASES
+    _bad_token_cases()
+    + _width_and_count_cases()
+    + _garbage_cases()
+    + _content_cases()
+    + _las_cases()
+    + LINK_CASES
 )
 
 

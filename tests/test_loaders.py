@@ -392,3 +392,73 @@ def test_unknown_files_are_listed_as_skipped(tmp_path):
         "scan.las2": "unsupported file type '.las2'",
         "sub": "a folder",
     }
+
+
+# ---------------------------------------------------------------- LAS / LAZ / E57
+def _write_las(path: Path, points, colors=None) -> Path:
+    import laspy
+
+    header = laspy.LasHeader(point_format=2 if colors is not None else 0, version="1.2")
+    header.offsets = np.floor(points.min(axis=0))
+    header.scales = [1e-4, 1e-4, 1e-4]
+    las = laspy.LasData(header)
+    las.x, las.y, las.z = points[:, 0], points[:, 1], points[:, 2]
+    if colors is not None:
+        las.red, las.green, las.blue = (np.round(colors * 65535).astype(np.uint16)).T
+    las.write(str(path))
+    return path
+
+
+@pytest.mark.parametrize("suffix", [".las", ".laz"])
+def test_las_and_laz_round_trip_with_georeferenced_offsets(tmp_path, suffix):
+    points, _, colors = _cloud()
+    points = points + [500_000.0, 4_000_000.0, 200.0]  # UTM-scale coordinates
+    scan = load_scan(_write_las(tmp_path / f"scan{suffix}", points, colors))
+    assert scan.num_points == 200 and scan.points.dtype == np.float64
+    assert np.max(np.abs(scan.points - points)) < 1e-4
+    assert np.max(np.abs(scan.colors - colors)) < 1e-4
+    assert suffix in supported_suffixes()
+
+
+def _write_e57(path: Path, scans: list[tuple[np.ndarray, np.ndarray | None]]) -> Path:
+    import pye57
+    from scipy.spatial.transform import Rotation
+
+    e57 = pye57.E57(str(path), mode="w")
+    for k, (points, pose) in enumerate(scans):
+        data = {f"cartesian{c}": points[:, i] for i, c in enumerate("XYZ")}
+        kwargs = {}
+        if pose is not None:
+            x, y, z, w = Rotation.from_matrix(pose[:3, :3]).as_quat()
+            kwargs = {"rotation": np.array([w, x, y, z]), "translation": pose[:3, 3]}
+        e57.write_scan_raw(data, name=f"station {k}", **kwargs)
+    e57.close()
+    return path
+
+
+def test_e57_scans_and_their_stored_poses(tmp_path):
+    from scipy.spatial.transform import Rotation
+
+    a, _, _ = _cloud(200, seed=1)
+    b, _, _ = _cloud(300, seed=2)
+    pose = np.eye(4)
+    pose[:3, :3] = Rotation.from_rotvec([0.1, 0.2, 0.3]).as_matrix()
+    pose[:3, 3] = [1e6, 2e6, 10.0]
+    path = _write_e57(tmp_path / "site.e57", [(a, pose), (b, None)])
+    scans = load_scans(tmp_path)
+    assert [s.name for s in scans] == ["site.e57#0", "site.e57#1"]
+    assert np.allclose(scans[0].points, a) and np.allclose(scans[1].points, b)
+    assert np.allclose(scans[0].T_world_scan_hint, pose, rtol=0, atol=1e-6)
+    with pytest.raises(ScanFileError, match="holds 2 scans"):
+        load_scan(path)
+    single = load_scan(_write_e57(tmp_path / "one.e57", [(a, None)]))
+    assert single.name == "one.e57" and single.num_points == 200
+
+
+@pytest.mark.parametrize("suffix", [".las", ".laz", ".e57"])
+def test_corrupt_las_and_e57_are_named(tmp_path, suffix):
+    path = tmp_path / f"bad{suffix}"
+    path.write_bytes(b"LASF" + bytes(range(256)) * 4 if suffix != ".e57" else b"ASTM-E57" * 100)
+    with pytest.raises(ScanFileError) as info:
+        load_scan(path)
+    assert info.value.path == str(path)

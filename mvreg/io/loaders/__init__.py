@@ -31,6 +31,8 @@ from mvreg.io.loaders.base import (
     ScanLoader,
     validate_cloud,
 )
+from mvreg.io.loaders.e57 import E57Loader
+from mvreg.io.loaders.las import LasLoader
 from mvreg.io.loaders.listing import (
     ScanListing,
     check_file_entry,
@@ -50,6 +52,7 @@ __all__ = [
     "display_path",
     "list_scan_files",
     "load_scan",
+    "load_scan_file",
     "load_scans",
     "loader_for",
     "natural_key",
@@ -69,7 +72,7 @@ def register_loader(loader: ScanLoader) -> None:
         _REGISTRY[suffix.lower()] = loader
 
 
-for _loader in (Open3DLoader(), NpyLoader()):
+for _loader in (Open3DLoader(), NpyLoader(), LasLoader(), E57Loader()):
     register_loader(_loader)
 
 
@@ -95,12 +98,12 @@ def natural_key(name: str) -> tuple:
     return tuple((0, int(p), "") if p.isdigit() else (1, 0, p.lower()) for p in parts)
 
 
-def load_scan(
+def load_scan_file(
     path: str | Path,
     min_points: int = DEFAULT_MIN_POINTS,
     max_points: int | None = DEFAULT_MAX_POINTS,
-) -> Scan:
-    """Read and check one scan file.
+) -> list[Scan]:
+    """Read and check every scan of one file (one, or several for E57).
 
     Args:
         min_points: fewest valid, distinct points a scan must have.
@@ -119,6 +122,7 @@ def load_scan(
     if size == 0:
         raise ScanFileError(path, "empty file (0 bytes)")
     count = getattr(loader, "count_points", None)
+    many = getattr(loader, "read_many", None)
     try:
         n = count(path) if max_points is not None and count is not None else 0
         if max_points is not None and n > max_points:
@@ -127,14 +131,32 @@ def load_scan(
                 f"{n} points, more than the limit of {max_points} points per scan "
                 "(max_points_per_scan; raise it if the machine has the memory)",
             )
-        raw = loader.read(path)
+        raws = many(path) if many is not None else [loader.read(path)]
     except ScanFileError:
         raise
     except OSError as e:
         raise ScanFileError(path, f"cannot read file ({e.strerror or e})") from e
     except Exception as e:  # noqa: BLE001 - whatever a format library raises: name the file
         raise ScanFileError(path, f"cannot read file ({type(e).__name__}: {e})") from e
-    return validate_cloud(path, raw, min_points=min_points)
+    return [validate_cloud(path, raw, min_points=min_points) for raw in raws]
+
+
+def load_scan(
+    path: str | Path,
+    min_points: int = DEFAULT_MIN_POINTS,
+    max_points: int | None = DEFAULT_MAX_POINTS,
+) -> Scan:
+    """Read and check a file holding one scan (see :func:`load_scan_file`).
+
+    Raises:
+        ScanFileError: as :func:`load_scan_file`, or the file holds several scans.
+    """
+    scans = load_scan_file(path, min_points=min_points, max_points=max_points)
+    if len(scans) != 1:
+        raise ScanFileError(
+            path, f"holds {len(scans)} scans; load it with load_scans or load_scan_file"
+        )
+    return scans[0]
 
 
 _SIDECAR_NAMES = {
@@ -191,11 +213,16 @@ def load_scans(
     min_points: int = DEFAULT_MIN_POINTS,
     max_points: int | None = DEFAULT_MAX_POINTS,
 ) -> list[Scan]:
-    """Load every scan of a folder (or an explicit list of files), in natural order."""
+    """Load every scan of a folder (or an explicit list of files), in natural order
+    (the scans of a multi-scan E57 file in the file's order)."""
     if isinstance(source, (str, Path)):
         paths = list_scan_files(source)
     else:
         paths = [Path(p) for p in source]
         if not paths:
             raise InputError("no scan files given")
-    return [load_scan(p, min_points=min_points, max_points=max_points) for p in paths]
+    return [
+        scan
+        for p in paths
+        for scan in load_scan_file(p, min_points=min_points, max_points=max_points)
+    ]

@@ -25,6 +25,8 @@ class RawCloud:
     normals: np.ndarray | None = None
     colors: np.ndarray | None = None
     sensor_origin: np.ndarray | None = None
+    name: str | None = None  # default: the file name (several scans per file: set it)
+    pose_hint: np.ndarray | None = None  # stored (4, 4) scanner-to-world pose, if any
 
 
 @dataclass
@@ -40,6 +42,8 @@ class Scan:
         num_dropped_nonfinite: rows removed because a coordinate was NaN or inf.
         sensor_origin: (3,) float64 sensor position in the scan frame when the file
             records one (PCD ``VIEWPOINT`` other than the default), else None.
+        T_world_scan_hint: (4, 4) float64 scan-to-world pose stored in the file (E57
+            scanner poses), a possible initial guess; None when the file has none.
     """
 
     name: str
@@ -49,6 +53,7 @@ class Scan:
     colors: np.ndarray | None = None
     num_dropped_nonfinite: int = 0
     sensor_origin: np.ndarray | None = field(default=None)
+    T_world_scan_hint: np.ndarray | None = field(default=None, repr=False)
 
     @property
     def num_points(self) -> int:
@@ -86,6 +91,19 @@ def _optional_rows(path: Path, a: np.ndarray | None, n: int, what: str) -> np.nd
     if a.shape != (n, 3):
         raise ScanFileError(path, f"{what} have shape {a.shape}, expected ({n}, 3)")
     return a
+
+
+def _pose_hint(t) -> np.ndarray | None:
+    """A stored pose as (4, 4) float64 when it is finite and rigid, else None."""
+    if t is None:
+        return None
+    t = np.asarray(t, dtype=np.float64)
+    if t.shape != (4, 4) or not np.all(np.isfinite(t)):
+        return None
+    r = t[:3, :3]
+    if np.max(np.abs(r.T @ r - np.eye(3))) > 1e-6 or np.linalg.det(r) < 0:
+        return None
+    return t
 
 
 def count_distinct(points: np.ndarray) -> int:
@@ -147,11 +165,12 @@ def validate_cloud(path: Path, raw: RawCloud, min_points: int = DEFAULT_MIN_POIN
         if not np.all(np.isfinite(origin)):
             origin = None
     return Scan(
-        name=path.name,
+        name=raw.name or path.name,
         path=path,
         points=np.ascontiguousarray(pts),
         normals=normals,
         colors=colors,
         num_dropped_nonfinite=n - num_valid,
         sensor_origin=origin,
+        T_world_scan_hint=_pose_hint(raw.pose_hint),
     )

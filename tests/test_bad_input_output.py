@@ -281,3 +281,36 @@ def test_cli_force_replaces_the_whole_set(tmp_path):
         assert stat.S_IMODE((out / name).stat().st_mode) == 0o644, name
     assert leftovers(tmp_path) == []
     assert str(out / "recording.rrd") in r.output and ".mvreg-tmp" not in r.output
+
+
+@pytest.fixture(scope="module")
+def synth_scans(tmp_path_factory) -> Path:
+    return small_scans(tmp_path_factory.mktemp("synth"))
+
+
+@pytest.mark.parametrize("sig", [signal.SIGTERM, signal.SIGINT, signal.SIGKILL])
+def test_signal_during_register_keeps_the_old_set(tmp_path, synth_scans, sig):
+    import time
+
+    out = tmp_path / "out"
+    before = old_set(out)
+    env = dict(os.environ, PYTHONPATH=str(ROOT), OPENBLAS_NUM_THREADS="1")
+    args = ["register", str(synth_scans), "--out", str(out), "--force"]
+    p = subprocess.Popen([sys.executable, "-m", "mvreg.cli", *args], env=env,
+                         stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)  # fmt: skip
+    deadline = time.time() + 120
+    while not leftovers(tmp_path) and time.time() < deadline and p.poll() is None:
+        time.sleep(0.05)
+    time.sleep(0.5)
+    p.send_signal(sig)
+    _, err = p.communicate(timeout=120)
+    expected = {signal.SIGTERM: 143, signal.SIGINT: 130, signal.SIGKILL: -9}[sig]
+    assert p.returncode == expected, err
+    if sig != signal.SIGKILL:
+        assert ("terminated" if sig == signal.SIGTERM else "interrupted") in err
+        assert "Traceback" not in err
+        assert leftovers(tmp_path) == []
+    assert contents(out) == before
+    with OutputFolder(out, force=True) as staging:  # the next run cleans up after a SIGKILL
+        (staging / "poses.json").write_text("next")
+    assert leftovers(tmp_path) == [] and contents(out) == {"poses.json": "next"}

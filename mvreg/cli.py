@@ -85,9 +85,8 @@ def run_guarded(fn, *args, **kwargs):
 
     from mvreg.errors import MvregError
 
-    previous = None
-    if threading.current_thread() is threading.main_thread():
-        previous = signal.signal(signal.SIGTERM, _on_sigterm)
+    main = threading.current_thread() is threading.main_thread()
+    previous = signal.signal(signal.SIGTERM, _on_sigterm) if main else None
     try:
         return fn(*args, **kwargs)
     except typer.Exit:
@@ -103,8 +102,8 @@ def run_guarded(fn, *args, **kwargs):
     except Exception as e:  # noqa: BLE001 - last resort: one line, unless --debug
         raise fail(e) from None
     finally:
-        if previous is not None:
-            signal.signal(signal.SIGTERM, previous)
+        if main:
+            signal.signal(signal.SIGTERM, signal.SIG_DFL if previous is None else previous)
 
 
 def parse_rho(value: str) -> str | float:

@@ -192,6 +192,12 @@ def _content_cases() -> list[Case]:
             ply_header(3, props="float128").encode() + b"1 2 3\n" * 3,
             "unknown PLY property type",
         ),
+        _scan_case(
+            "ply-binary-body-in-ascii",
+            "long.ply",
+            ply_header(300).encode() + bytes(range(1, 10)) * 300_000,
+            "line 8 is longer than",
+        ),
         _scan_case("pickle-npy", "p.npy", b"\x93NUMPY\x01\x00v\x00{'descr': '|O'," + b" " * 200),
     ]
 

@@ -26,6 +26,7 @@ import numpy as np
 from mvreg.errors import ScanFileError
 
 MAX_HEADER_BYTES = 1 << 20
+MAX_LINE_BYTES = 1 << 20
 _BLOCK_BYTES = 1 << 22
 _WHITESPACE = np.zeros(256, dtype=bool)
 _WHITESPACE[[9, 10, 11, 12, 13, 32]] = True
@@ -113,7 +114,9 @@ def declared_points(path: Path) -> int:
         return _pcd_header(f, path)[0].count
 
 
-def _line_blocks(f: BinaryIO, first_line: int) -> Iterator[tuple[np.ndarray, np.ndarray, list]]:
+def _line_blocks(
+    path: Path, f: BinaryIO, first_line: int
+) -> Iterator[tuple[np.ndarray, np.ndarray, list]]:
     """(line numbers, values per line, values) of the non-blank lines, block by block."""
     carry, line0 = b"", first_line
     while True:
@@ -121,6 +124,8 @@ def _line_blocks(f: BinaryIO, first_line: int) -> Iterator[tuple[np.ndarray, np.
         buf = carry + data
         cut = len(buf) if not data else buf.rfind(b"\n") + 1
         if data and cut == 0:
+            if len(buf) > MAX_LINE_BYTES:  # binary garbage: never buffer the whole file
+                raise ScanFileError(path, f"line {line0} is longer than {MAX_LINE_BYTES} bytes")
             carry = buf
             continue
         block, carry = buf[:cut], buf[cut:]
@@ -179,7 +184,7 @@ def _check_values(path: Path, toks: list[bytes], lines: list[int], types) -> Non
 
 def _check_ascii(path: Path, f: BinaryIO, first_line: int, elements: list[Element], what: str):
     """Stream an ASCII body: exact line counts, value counts and number ranges."""
-    blocks = _line_blocks(f, first_line)
+    blocks = _line_blocks(path, f, first_line)
     todo = [e for e in elements if e.count > 0]
     el_i, seen = 0, 0
     for lines, counts, toks in blocks:

@@ -314,3 +314,20 @@ def test_signal_during_register_keeps_the_old_set(tmp_path, synth_scans, sig):
     with OutputFolder(out, force=True) as staging:  # the next run cleans up after a SIGKILL
         (staging / "poses.json").write_text("next")
     assert leftovers(tmp_path) == [] and contents(out) == {"poses.json": "next"}
+
+
+def test_out_that_is_a_mount_point_is_a_one_line_error(tmp_path):
+    out = tmp_path / "out"
+    out.mkdir()
+    r = subprocess.run(["mount", "-t", "tmpfs", "-o", "size=64k", "tmpfs", str(out)],
+                       capture_output=True)  # fmt: skip
+    if r.returncode != 0:
+        pytest.skip("cannot mount a tmpfs here")
+    try:
+        with pytest.raises(OutputWriteError, match="cannot replace the folder") as info:
+            with OutputFolder(out) as staging:
+                (staging / "poses.json").write_text("new")
+        assert info.value.path == str(out)
+        assert os.listdir(out) == [] and leftovers(tmp_path) == []
+    finally:
+        subprocess.run(["umount", str(out)], check=False)

@@ -208,6 +208,15 @@ class OutputFolder:
             elif entry.is_file() and not entry.is_symlink():
                 os.chmod(entry, stat.S_IMODE(0o666 & ~umask))
         _fsync_dir(self.staging)
+        try:
+            self._swap()
+        except OSError as e:  # e.g. OUT is a mount point: it cannot be renamed
+            raise OutputWriteError(
+                self.shown, f"cannot replace the folder: {e.strerror or e}"
+            ) from e
+        _fsync_dir(self.out.parent)
+
+    def _swap(self) -> None:
         if not self.out.exists():
             os.rename(self.staging, self.out)
         elif exchange_paths(self.staging, self.out):
@@ -217,7 +226,6 @@ class OutputFolder:
             os.rename(self.out, old)
             os.rename(self.staging, self.out)
             _remove(old)
-        _fsync_dir(self.out.parent)
 
 
 def _fsync_dir(path: Path) -> None:

@@ -10,6 +10,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from mvreg.errors import InputError
 from mvreg.geometry import project_to_orthogonal, rotation_angle_deg
 
 
@@ -50,6 +51,15 @@ class PoseErrors:
         }
 
 
+def _check_poses(T_est: np.ndarray, T_true: np.ndarray) -> None:
+    if T_est.shape != T_true.shape:
+        raise InputError(f"estimated poses {T_est.shape} and true poses {T_true.shape} differ")
+    if T_est.ndim != 3 or T_est.shape[0] == 0 or T_est.shape[1:] not in ((3, 3), (4, 4)):
+        raise InputError(f"poses must be an (M, d+1, d+1) stack with M >= 1, got {T_est.shape}")
+    if not (np.all(np.isfinite(T_est)) and np.all(np.isfinite(T_true))):
+        raise InputError("poses have NaN or inf")
+
+
 def pose_errors(T_est: np.ndarray, T_true: np.ndarray, at: np.ndarray | None = None) -> PoseErrors:
     """Errors of (M, d+1, d+1) world_from_local estimates against the truth.
 
@@ -59,6 +69,8 @@ def pose_errors(T_est: np.ndarray, T_true: np.ndarray, at: np.ndarray | None = N
     two object sizes away, or a random frame) turns a small rotation error into a large
     origin error; the error at the centroid is where the scan's points actually are.
     """
+    T_est, T_true = np.asarray(T_est, dtype=np.float64), np.asarray(T_true, dtype=np.float64)
+    _check_poses(T_est, T_true)
     d = T_est.shape[-1] - 1
     r_e, t_e = T_est[:, :d, :d], T_est[:, :d, d]
     r_t, t_t = T_true[:, :d, :d], T_true[:, :d, d]

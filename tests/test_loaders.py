@@ -261,3 +261,204 @@ def test_bunny_scans_load(shared_data):
     assert len(scans) == 10  # bun.conf and README are not scans
     assert all(30000 <= s.num_points <= 41000 for s in scans)
     assert scans[0].num_points == 40256 and scans[0].num_dropped_nonfinite == 0
+
+
+# ---------------------------------------------------------------- issue 16: hostile files
+def _ascii_ply(rows: list[str], n: int | None = None) -> bytes:
+    return (_ply_header(len(rows) if n is None else n) + "".join(r + "\n" for r in rows)).encode()
+
+
+def _rows(k: int = 150) -> list[str]:
+    return [f"{i} {i % 7} {i % 11}" for i in range(k)]
+
+
+@pytest.mark.parametrize(
+    ("edit", "reason"),
+    [
+        (lambda r: r[:40] + ["1 x 2"] + r[41:], "line 48: value 'x' is not a number"),
+        (lambda r: r[:40] + ["1 1e999 2"] + r[41:], "line 48: value '1e999' is out of range"),
+        (lambda r: r[:40] + ["1 1e39 2"] + r[41:], "'1e39' is out of range"),
+        (lambda r: r[:40] + ["1 2"] + r[41:], "line 48: 2 values, the header declares 3"),
+        (lambda r: r[:40] + ["1 2 3 4"] + r[41:], "line 48: 4 values"),
+    ],
+)
+def test_corrupt_ascii_ply_names_the_line(tmp_path, edit, reason):
+    path = tmp_path / "bad.ply"
+    path.write_bytes(_ascii_ply(edit(_rows())))
+    with pytest.raises(ScanFileError) as info:
+        load_scan(path)
+    assert reason in info.value.reason and str(path) in str(info.value)
+
+
+def test_ascii_ply_literal_nan_is_a_dropped_row_inf_an_error(tmp_path):
+    rows = _rows()
+    rows[3] = "nan 1 2"
+    path = tmp_path / "holes.ply"
+    path.write_bytes(_ascii_ply(rows))
+    scan = load_scan(path)
+    assert scan.num_points == 149 and scan.num_dropped_nonfinite == 1
+    rows[4] = "1 -inf 2"
+    path.write_bytes(_ascii_ply(rows))
+    with pytest.raises(ScanFileError, match="line 12: value '-inf' is out of range"):
+        load_scan(path)
+
+
+@pytest.mark.parametrize(("declared", "held"), [(120, 150), (200, 150)])
+def test_vertex_count_must_match_the_file(tmp_path, declared, held):
+    path = tmp_path / "count.ply"
+    path.write_bytes(_ascii_ply(_rows(held), n=declared))
+    with pytest.raises(ScanFileError) as info:
+        load_scan(path)
+    assert f"declares {declared}" in info.value.reason and f"holds {held}" in info.value.reason
+
+
+def test_binary_ply_with_extra_bytes_is_refused(tmp_path):
+    path = tmp_path / "long.ply"
+    path.write_bytes(
+        _ply_header(150, "binary_little_endian").encode() + np.ones((160, 3), "<f4").tobytes()
+    )
+    with pytest.raises(
+        ScanFileError, match="declares 150 vertex rows .* holds 1920 data bytes .160 rows"
+    ):
+        load_scan(path)
+
+
+def test_all_garbage_files_are_named(tmp_path):
+    rng = np.random.default_rng(0)
+    for name in ("g.ply", "g.pcd", "g.xyz", "g.pts", "g.npy"):
+        path = tmp_path / name
+        path.write_bytes(rng.integers(0, 256, 5000, dtype=np.uint8).tobytes())
+        with pytest.raises(ScanFileError) as info:
+            load_scan(path)
+        assert info.value.path == str(path)
+
+
+def test_point_limit(tmp_path):
+    path = tmp_path / "big.ply"
+    path.write_bytes(_ascii_ply(_rows(300)))
+    with pytest.raises(ScanFileError, match="300 points, more than the limit of 200"):
+        load_scan(path, max_points=200)
+    np.save(tmp_path / "big.npy", np.zeros((300, 3)))
+    with pytest.raises(ScanFileError, match="more than the limit"):
+        load_scan(tmp_path / "big.npy", max_points=200)
+    (tmp_path / "big.xyz").write_text("".join(r + "\n" for r in _rows(300)))
+    with pytest.raises(ScanFileError, match="more than the limit"):
+        load_scans([tmp_path / "big.xyz"], max_points=200)
+    assert load_scan(path, max_points=None).num_points == 300
+
+
+def test_duplicate_points_only(tmp_path):
+    np.save(tmp_path / "dup.npy", np.repeat(np.eye(3)[:2], 300, axis=0))
+    with pytest.raises(ScanFileError, match="600 points but only 2 distinct; need min_points"):
+        load_scan(tmp_path / "dup.npy")
+
+
+def test_symlinks_and_undecodable_names(tmp_path):
+    points, _, _ = _cloud()
+    np.save(tmp_path / "a.npy", points)
+    (tmp_path / "dangling.npy").symlink_to(tmp_path / "gone.npy")
+    with pytest.raises(ScanFileError, match="dangling symbolic link") as info:
+        list_scan_files(tmp_path)
+    assert info.value.path == str(tmp_path / "dangling.npy")
+    (tmp_path / "dangling.npy").unlink()
+    (tmp_path / "loop.npy").symlink_to(tmp_path / "loop.npy")
+    with pytest.raises(ScanFileError, match="symbolic link loop"):
+        load_scans(tmp_path)
+    (tmp_path / "loop.npy").unlink()
+    import os
+
+    bad = os.path.join(os.fsencode(tmp_path), b"b\xffd.npy")
+    with open(bad, "wb") as f:
+        np.save(f, points)
+    with pytest.raises(ScanFileError, match="not valid UTF-8") as info:
+        list_scan_files(tmp_path)
+    assert "b\\xffd.npy" in str(info.value)
+    str(info.value).encode("utf-8")  # printable
+
+
+def test_unknown_files_are_listed_as_skipped(tmp_path):
+    from mvreg.io.loaders import scan_folder
+
+    points, _, _ = _cloud()
+    np.save(tmp_path / "a.npy", points)
+    for name in ("notes.txt", "scan.las2", "README", "ground_truth.json", "x.md", "y.conf"):
+        (tmp_path / name).write_text("x")
+    (tmp_path / "sub").mkdir()
+    listing = scan_folder(tmp_path)
+    assert [p.name for p in listing.files] == ["a.npy"]
+    skipped = {d["file"]: d["reason"] for d in listing.skipped_report()}
+    assert skipped == {
+        "notes.txt": "unsupported file type '.txt'",
+        "scan.las2": "unsupported file type '.las2'",
+        "sub": "a folder",
+    }
+
+
+# ---------------------------------------------------------------- LAS / LAZ / E57
+def _write_las(path: Path, points, colors=None) -> Path:
+    import laspy
+
+    header = laspy.LasHeader(point_format=2 if colors is not None else 0, version="1.2")
+    header.offsets = np.floor(points.min(axis=0))
+    header.scales = [1e-4, 1e-4, 1e-4]
+    las = laspy.LasData(header)
+    las.x, las.y, las.z = points[:, 0], points[:, 1], points[:, 2]
+    if colors is not None:
+        las.red, las.green, las.blue = (np.round(colors * 65535).astype(np.uint16)).T
+    las.write(str(path))
+    return path
+
+
+@pytest.mark.parametrize("suffix", [".las", ".laz"])
+def test_las_and_laz_round_trip_with_georeferenced_offsets(tmp_path, suffix):
+    points, _, colors = _cloud()
+    points = points + [500_000.0, 4_000_000.0, 200.0]  # UTM-scale coordinates
+    scan = load_scan(_write_las(tmp_path / f"scan{suffix}", points, colors))
+    assert scan.num_points == 200 and scan.points.dtype == np.float64
+    assert np.max(np.abs(scan.points - points)) < 1e-4
+    assert np.max(np.abs(scan.colors - colors)) < 1e-4
+    assert suffix in supported_suffixes()
+
+
+def _write_e57(path: Path, scans: list[tuple[np.ndarray, np.ndarray | None]]) -> Path:
+    import pye57
+    from scipy.spatial.transform import Rotation
+
+    e57 = pye57.E57(str(path), mode="w")
+    for k, (points, pose) in enumerate(scans):
+        data = {f"cartesian{c}": points[:, i] for i, c in enumerate("XYZ")}
+        kwargs = {}
+        if pose is not None:
+            x, y, z, w = Rotation.from_matrix(pose[:3, :3]).as_quat()
+            kwargs = {"rotation": np.array([w, x, y, z]), "translation": pose[:3, 3]}
+        e57.write_scan_raw(data, name=f"station {k}", **kwargs)
+    e57.close()
+    return path
+
+
+def test_e57_scans_and_their_stored_poses(tmp_path):
+    from scipy.spatial.transform import Rotation
+
+    a, _, _ = _cloud(200, seed=1)
+    b, _, _ = _cloud(300, seed=2)
+    pose = np.eye(4)
+    pose[:3, :3] = Rotation.from_rotvec([0.1, 0.2, 0.3]).as_matrix()
+    pose[:3, 3] = [1e6, 2e6, 10.0]
+    path = _write_e57(tmp_path / "site.e57", [(a, pose), (b, None)])
+    scans = load_scans(tmp_path)
+    assert [s.name for s in scans] == ["site.e57#0", "site.e57#1"]
+    assert np.allclose(scans[0].points, a) and np.allclose(scans[1].points, b)
+    assert np.allclose(scans[0].T_world_scan_hint, pose, rtol=0, atol=1e-6)
+    with pytest.raises(ScanFileError, match="holds 2 scans"):
+        load_scan(path)
+    single = load_scan(_write_e57(tmp_path / "one.e57", [(a, None)]))
+    assert single.name == "one.e57" and single.num_points == 200
+
+
+@pytest.mark.parametrize("suffix", [".las", ".laz", ".e57"])
+def test_corrupt_las_and_e57_are_named(tmp_path, suffix):
+    path = tmp_path / f"bad{suffix}"
+    path.write_bytes(b"LASF" + bytes(range(256)) * 4 if suffix != ".e57" else b"ASTM-E57" * 100)
+    with pytest.raises(ScanFileError) as info:
+        load_scan(path)
+    assert info.value.path == str(path)

@@ -16,8 +16,10 @@ import typer
 
 from mvreg.cli import register as _register_cmds
 from mvreg.cli import solve as _solve_cmds
-from mvreg.cli.common import STATE
+from mvreg.cli.common import STATE, run_guarded
 from mvreg.cli.synth import synth_command
+
+__all__ = ["app", "run_guarded"]
 
 app = typer.Typer(
     name="mvreg",

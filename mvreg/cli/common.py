@@ -32,10 +32,27 @@ def fail(exc: BaseException) -> typer.Exit:
     return typer.Exit(code)
 
 
+class Terminated(BaseException):
+    """Raised in the main thread by the SIGTERM handler of `run_guarded`."""
+
+
+def _on_sigterm(signum, frame):
+    raise Terminated()
+
+
 def run_guarded(fn, *args, **kwargs):
-    """Call fn; turn MvregError (and, without --debug, anything else) into an exit code."""
+    """Call fn; turn MvregError (and, without --debug, anything else) into an exit code.
+
+    SIGINT exits 130 and SIGTERM 143, each with a message; both unwind the call (so an
+    output folder being written is discarded, the previous one kept).
+    """
+    import signal
+    import threading
+
     from mvreg.errors import MvregError
 
+    main = threading.current_thread() is threading.main_thread()
+    previous = signal.signal(signal.SIGTERM, _on_sigterm) if main else None
     try:
         return fn(*args, **kwargs)
     except typer.Exit:
@@ -45,8 +62,14 @@ def run_guarded(fn, *args, **kwargs):
     except KeyboardInterrupt:
         typer.echo("mvreg: interrupted", err=True)
         raise typer.Exit(130) from None
+    except Terminated:
+        typer.echo("mvreg: terminated (SIGTERM); this run's outputs were discarded", err=True)
+        raise typer.Exit(143) from None
     except Exception as e:  # noqa: BLE001 - last resort: one line, unless --debug
         raise fail(e) from None
+    finally:
+        if main:
+            signal.signal(signal.SIGTERM, signal.SIG_DFL if previous is None else previous)
 
 
 def parse_sets(items: list[str] | None) -> dict:
@@ -75,8 +98,10 @@ def config_from(path: Path | None, sets: list[str] | None, **named):
 
 
 def check_out_file(path: Path, force: bool):
-    from mvreg.errors import OutputExistsError
+    from mvreg.errors import InputError, OutputExistsError
 
+    if not str(path) or path.is_dir():
+        raise InputError(f"{path or repr('')}: is a folder; --out must name a file")
     if path.exists() and not force:
         raise OutputExistsError(f"{path} exists (use --force to overwrite)")
 

@@ -3,6 +3,7 @@
 
 from __future__ import annotations
 
+import os
 from pathlib import Path
 from typing import Annotated
 
@@ -91,7 +92,8 @@ def register_folder(
 ):
     """The body of `mvreg register` (also used by `mvreg demo`). Returns the exit code."""
     from mvreg.errors import OutputExistsError
-    from mvreg.io.writers import prepare_output, residual_heatmap, write_registration
+    from mvreg.io.output_folder import OutputFolder
+    from mvreg.io.writers import residual_heatmap, write_registration
     from mvreg.viz import make_recorder
 
     if sequence:
@@ -99,24 +101,36 @@ def register_folder(
     else:
         from mvreg.pipeline import register as run_register
 
-    out = prepare_output(out, force)
-    rrd_path = None if no_rrd else (rrd if rrd is not None else out / "recording.rrd")
+    output = OutputFolder(out, force=force, inputs=[folder])
+    output.check()  # refuse before spending time
     if rrd is not None and rrd.exists() and not force:
         raise OutputExistsError(f"{rrd} exists (use --force to overwrite)")
-    rec = make_recorder(rrd_path, spawn=spawn, recording_id=f"mvreg-{cfg.seed}")
-    for w in getattr(rec, "warnings", []):
-        typer.echo(f"mvreg: warning: {w}", err=True)
-    with rec:
-        reg = run_register(
-            folder, cfg, recorder=rec, progress=RichProgress() if progress else None, truth=truth
-        )
-        if reg.T_world_scan:
-            pts, res = residual_heatmap(reg)
-            rec.log_residual_heatmap(pts, res)
-        paths = write_registration(reg, out)
+    with output as staging:  # written into staging, swapped in on success
+        rrd_path = None if no_rrd else output.staged(rrd or staging / "recording.rrd")
+        rec = make_recorder(rrd_path, spawn=spawn, recording_id=f"mvreg-{cfg.seed}")
+        for w in getattr(rec, "warnings", []):
+            typer.echo(f"mvreg: warning: {w}", err=True)
+        with rec:
+            reg = run_register(
+                folder, cfg, recorder=rec, progress=RichProgress() if progress else None,
+                truth=truth,
+            )  # fmt: skip
+            if reg.T_world_scan:
+                pts, res = residual_heatmap(reg)
+                rec.log_residual_heatmap(pts, res)
+            paths = write_registration(reg, staging)
+        written = [output.final_path(p) for p in paths.values() if p.exists()]
+    if rrd_path is not None:
+        rrd_path = output.final_path(rrd_path)
+        if rrd_path.is_file():  # rerun writes 0600
+            umask = os.umask(0)
+            os.umask(umask)
+            os.chmod(rrd_path, 0o666 & ~umask)
+    for s in reg.skipped_files:
+        typer.echo(f"mvreg: warning: {s['file']}: not read ({s['reason']})", err=True)
     summary_table(reg)
     typer.echo(
-        f"wrote {', '.join(str(p) for p in paths.values() if p.exists())}"
+        f"wrote {', '.join(str(p) for p in written)}"
         + (f", {rrd_path}" if rrd_path is not None else "")
     )
     return 3 if reg.unregistered else 0
@@ -245,11 +259,16 @@ def eval_cmd(
         from mvreg.metrics import pose_errors
 
         poses_path = out / "poses.json" if out.is_dir() else out
-        est = read_poses_json(poses_path)
-        tru = read_poses_json(truth)
+        est = read_poses_json(poses_path, dim=None)
+        tru = read_poses_json(truth, dim=None)
         common = [n for n in est if n in tru]
         if len(common) < 2:
-            raise InputError(f"{truth}: fewer than 2 scans in common with {poses_path}")
+            raise InputError(
+                f"{truth}: {len(common)} scan(s) in common with {poses_path}, need at least 2"
+            )
+        d_est, d_tru = next(iter(est.values())).shape[0], next(iter(tru.values())).shape[0]
+        if d_est != d_tru:
+            raise InputError(f"{truth}: {d_tru}x{d_tru} poses, {poses_path} has {d_est}x{d_est}")
         err = pose_errors(np.stack([est[n] for n in common]), np.stack([tru[n] for n in common]))
         t = Table(title=f"{poses_path} vs {truth}")
         t.add_column("scan")

@@ -49,6 +49,11 @@ class RegisterConfig(BaseModel):
     seed: int = Field(0, ge=0, description="same seed, same poses")
     workers: int = Field(2, ge=1, description="threads for per-scan and per-pair work")
     min_points: int = Field(100, ge=3, description="a scan needs at least this many points")
+    max_points_per_scan: int = Field(
+        50_000_000,
+        ge=3,
+        description="a scan with more points is refused with a message (memory)",
+    )
     preprocess: PreprocessConfig = Field(default_factory=PreprocessConfig)
     pairs: PairsConfig = Field(default_factory=PairsConfig)
     align: AlignConfig = Field(default_factory=AlignConfig)

@@ -1,4 +1,8 @@
-"""Atomic file writes: write to a temporary file beside the target, then rename."""
+"""Atomic file writes: write to a temporary file beside the target, then rename.
+
+A failed write (disk full, read-only, ...) raises :class:`OutputWriteError` naming the
+target file; the target is left untouched and the temporary file removed.
+"""
 
 from __future__ import annotations
 
@@ -9,6 +13,30 @@ from collections.abc import Callable
 from contextlib import contextmanager
 from pathlib import Path
 
+from mvreg.errors import MvregError
+
+
+class OutputWriteError(MvregError):
+    """An output file could not be written (disk full, permissions, ...). Exit code 4.
+
+    Attributes:
+        path: the file that was being written (as text).
+        reason: the operating system's reason.
+    """
+
+    def __init__(self, path, reason: str):
+        self.path, self.reason = str(path), reason
+        super().__init__(f"{self.path}: cannot write ({reason})")
+
+    def relocate(self, staging: Path, final: Path) -> None:
+        """Name the file at ``final`` instead of inside the ``staging`` folder."""
+        try:
+            rel = Path(self.path).relative_to(staging)
+        except ValueError:
+            return
+        self.path = str(final / rel)
+        self.args = (f"{self.path}: cannot write ({self.reason})",)
+
 
 @contextmanager
 def atomic_path(path: str | os.PathLike, suffix: str | None = None):
@@ -18,10 +46,13 @@ def atomic_path(path: str | os.PathLike, suffix: str | None = None):
     temporary file is removed and ``path`` is left untouched.
     """
     path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(
-        prefix=f".{path.name}.", suffix=suffix or path.suffix or ".tmp", dir=path.parent
-    )
+    try:
+        path.parent.mkdir(parents=True, exist_ok=True)
+        fd, tmp = tempfile.mkstemp(
+            prefix=f".{path.name}.", suffix=suffix or path.suffix or ".tmp", dir=path.parent
+        )
+    except OSError as e:
+        raise OutputWriteError(path, e.strerror or str(e)) from e
     os.close(fd)
     umask = os.umask(0)
     os.umask(umask)
@@ -29,6 +60,9 @@ def atomic_path(path: str | os.PathLike, suffix: str | None = None):
     try:
         yield Path(tmp)
         os.replace(tmp, path)
+    except OSError as e:
+        Path(tmp).unlink(missing_ok=True)
+        raise OutputWriteError(path, e.strerror or str(e)) from e
     except BaseException:
         Path(tmp).unlink(missing_ok=True)
         raise

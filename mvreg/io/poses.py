@@ -41,8 +41,43 @@ def write_poses_json(path: str | os.PathLike, T_world_local: dict[str, np.ndarra
     atomic_write_json(path, poses_to_json_dict(T_world_local, **extra))
 
 
-def read_poses_json(path: str | os.PathLike) -> dict[str, np.ndarray]:
-    """Read the poses of an ``mvreg.poses/1`` file as {name: (d+1, d+1) float64}."""
+def check_pose(a, where: str, dim: int | None = 3) -> np.ndarray:
+    """A rigid pose as a (d+1, d+1) float64 array, or InputError naming ``where``.
+
+    Checks: square 4x4 (``dim=3``), 3x3 (``dim=2``) or either (``dim=None``); finite;
+    last row ``[0, ..., 0, 1]``; rotation orthonormal (``|R^T R - I| < 1e-6``) with
+    determinant +1.
+    """
+    try:
+        a = np.asarray(a, dtype=np.float64)
+    except (ValueError, TypeError):
+        raise InputError(f"{where} is not a matrix of numbers") from None
+    sizes = (3, 4) if dim is None else (dim + 1,)
+    if a.ndim != 2 or a.shape[0] != a.shape[1] or a.shape[0] not in sizes:
+        want = " or ".join(f"{k}x{k}" for k in sizes)
+        raise InputError(f"{where} is not a {want} matrix (shape {a.shape})")
+    if not np.all(np.isfinite(a)):
+        raise InputError(f"{where} has NaN or inf")
+    d = a.shape[0] - 1
+    if not np.array_equal(a[d], np.eye(d + 1)[d]):
+        raise InputError(f"{where} has last row {a[d].tolist()}, not {np.eye(d + 1)[d].tolist()}")
+    r = a[:d, :d]
+    dev = float(np.max(np.abs(r.T @ r - np.eye(d))))
+    if dev > 1e-6:
+        raise InputError(
+            f"{where} is not rigid: its rotation is not orthonormal (|R^T R - I| = {dev:.3g})"
+        )
+    if np.linalg.det(r) < 0:
+        raise InputError(f"{where} is a reflection (det R = -1), not a rotation")
+    return a
+
+
+def read_poses_json(path: str | os.PathLike, dim: int | None = 3) -> dict[str, np.ndarray]:
+    """Read the poses of an ``mvreg.poses/1`` file as {name: (d+1, d+1) float64}.
+
+    Every pose is checked by :func:`check_pose` (``dim=3``: 4x4, ``dim=2``: 3x3,
+    ``None``: either, the same for all). Raises InputError naming the file and the pose.
+    """
     path = Path(path)
     try:
         data = json.loads(path.read_text())
@@ -50,18 +85,25 @@ def read_poses_json(path: str | os.PathLike) -> dict[str, np.ndarray]:
         raise InputError(f"{path}: no such file") from None
     except (OSError, UnicodeDecodeError, json.JSONDecodeError) as e:
         raise InputError(f"{path}: not a readable JSON file ({e})") from None
+    except RecursionError:
+        raise InputError(f"{path}: JSON nested too deeply") from None
     if not isinstance(data, dict) or data.get("format") != POSES_FORMAT:
         raise InputError(f"{path}: not an {POSES_FORMAT} file (missing 'format')")
+    raw = data.get("poses", {})
+    if not isinstance(raw, dict):
+        raise InputError(f"{path}: 'poses' is not an object of name -> matrix")
     poses = {}
-    for name, m in data.get("poses", {}).items():
-        a = np.asarray(m, dtype=np.float64)
-        if a.ndim != 2 or a.shape[0] != a.shape[1] or a.shape[0] not in (3, 4):
-            raise InputError(f"{path}: pose '{name}' is not a 3x3 or 4x4 matrix")
-        if not np.all(np.isfinite(a)):
-            raise InputError(f"{path}: pose '{name}' has NaN or inf")
-        poses[name] = a
+    for name, m in raw.items():
+        poses[name] = check_pose(m, f"{path}: pose '{name}'", dim)
     if not poses:
         raise InputError(f"{path}: no poses")
+    first = next(iter(poses))
+    for name, a in poses.items():
+        if a.shape != poses[first].shape:
+            k, j = a.shape[0], poses[first].shape[0]
+            raise InputError(
+                f"{path}: pose '{name}' is {k}x{k} but pose '{first}' is {j}x{j} (mixed sizes)"
+            )
     return poses
 
 

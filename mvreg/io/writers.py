@@ -2,7 +2,8 @@
 
 Every file is written atomically (temporary file, then rename): an interrupted run never
 leaves a half-written file. ``prepare_output`` refuses a folder that already holds
-results unless ``force``.
+results unless ``force``; :class:`mvreg.io.output_folder.OutputFolder` makes a whole run's
+outputs one set (written aside, swapped in).
 """
 
 from __future__ import annotations
@@ -14,16 +15,8 @@ import numpy as np
 from mvreg.errors import OutputExistsError
 from mvreg.geometry import transform_points
 from mvreg.io.atomic import atomic_path, atomic_write_json
+from mvreg.io.output_folder import RESULT_FILES
 from mvreg.io.poses import write_poses_json, write_poses_kitti, write_poses_tum
-
-RESULT_FILES = (
-    "poses.json",
-    "poses_tum.txt",
-    "poses_kitti.txt",
-    "merged.ply",
-    "report.json",
-    "recording.rrd",
-)
 
 
 def prepare_output(out: str | Path, force: bool) -> Path:

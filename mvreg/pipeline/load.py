@@ -6,51 +6,72 @@ folder, used only to evaluate). Raises InputError / ScanFileError naming the cul
 
 from __future__ import annotations
 
+from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
 
 from mvreg.errors import InputError
-from mvreg.io.loaders import Scan, list_scan_files, load_scan
+from mvreg.io.loaders import Scan, load_scan_file, scan_folder
+from mvreg.io.poses import read_poses_json
 
 
-def load_source(source, names, min_points: int, truth, prog, what: str = "registration"):
-    """Scans from a folder or from (N, 3) arrays, checked; the source as text; the truth
-    (read from ``ground_truth.json`` in the folder when not given)."""
+@dataclass
+class Loaded:
+    """What the load stage read: the scans (in order), the source as text (None for
+    arrays), the ground truth ({name: (4, 4)}, evaluation only) and the folder entries
+    that were not scans (``[{"file", "reason"}]``: the CLI warns about them)."""
+
+    scans: list[Scan]
+    source: str | None
+    truth: dict | None
+    skipped: list[dict] = field(default_factory=list)
+
+
+def load_source(
+    source, names, min_points: int, max_points: int | None, truth, prog, what="registration"
+) -> Loaded:
+    """Scans from a folder (every scan of every supported file, natural order) or from
+    (N, 3) arrays, checked; raises InputError / ScanFileError naming the culprit."""
     if isinstance(source, (str, Path)):
-        folder = Path(source)
-        if not folder.is_dir():
-            raise InputError(f"{folder}: not a folder of scans")
-        files = list_scan_files(folder)
-        if not files:
-            raise InputError(f"{folder}: no scan files found")
-        prog.stage("load", len(files))
-        scans = []
-        for f in files:
-            scans.append(load_scan(f, min_points=min_points))
-            prog.advance()
-        if truth is None and (folder / "ground_truth.json").exists():
-            from mvreg.io.poses import read_poses_json
-
-            truth = read_poses_json(folder / "ground_truth.json")
-        src = str(folder)
+        out = _load_folder(Path(source), min_points, max_points, truth, prog)
     else:
-        arrays = list(source)
-        names = list(names) if names is not None else [f"scan_{i:03d}" for i in range(len(arrays))]
-        if len(names) != len(arrays):
-            raise InputError(f"{len(names)} names for {len(arrays)} point arrays")
-        scans = []
-        for n, a in zip(names, arrays, strict=True):
-            a = np.asarray(a, dtype=np.float64)
-            if a.ndim != 2 or a.shape[1] != 3:
-                raise InputError(f"{n}: points must be an (N, 3) array, got {a.shape}")
-            ok = np.all(np.isfinite(a), axis=1)
-            if ok.sum() < min_points:
-                raise InputError(f"{n}: {int(ok.sum())} valid points, need {min_points}")
-            scans.append(
-                Scan(name=n, path=Path(n), points=a[ok], num_dropped_nonfinite=int((~ok).sum()))
-            )
-        src = None
-    if len(scans) < 2:
-        raise InputError(f"{source}: {what} needs at least 2 scans, found {len(scans)}")
-    return scans, src, truth
+        out = Loaded(_from_arrays(source, names, min_points), None, truth)
+    if len(out.scans) < 2:
+        raise InputError(f"{source}: {what} needs at least 2 scans, found {len(out.scans)}")
+    return out
+
+
+def _load_folder(folder: Path, min_points, max_points, truth, prog) -> Loaded:
+    if not folder.is_dir():
+        raise InputError(f"{folder}: not a folder of scans")
+    listing = scan_folder(folder)
+    if not listing.files:
+        raise InputError(f"{folder}: no scan files found")
+    prog.stage("load", len(listing.files))
+    scans = []
+    for f in listing.files:
+        scans += load_scan_file(f, min_points=min_points, max_points=max_points)
+        prog.advance()
+    if truth is None and (folder / "ground_truth.json").exists():
+        truth = read_poses_json(folder / "ground_truth.json")
+    return Loaded(scans, str(folder), truth, listing.skipped_report())
+
+
+def _from_arrays(source, names, min_points: int) -> list[Scan]:
+    arrays = list(source)
+    names = list(names) if names is not None else [f"scan_{i:03d}" for i in range(len(arrays))]
+    if len(names) != len(arrays):
+        raise InputError(f"{len(names)} names for {len(arrays)} point arrays")
+    scans = []
+    for n, a in zip(names, arrays, strict=True):
+        a = np.asarray(a, dtype=np.float64)
+        if a.ndim != 2 or a.shape[1] != 3:
+            raise InputError(f"{n}: points must be an (N, 3) array, got {a.shape}")
+        ok = np.all(np.isfinite(a), axis=1)
+        if ok.sum() < min_points:
+            raise InputError(f"{n}: {int(ok.sum())} valid points, need {min_points}")
+        scans.append(
+            Scan(name=n, path=Path(n), points=a[ok], num_dropped_nonfinite=int((~ok).sum()))
+        )
+    return scans

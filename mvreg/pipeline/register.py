@@ -57,7 +57,10 @@ def register(
 def run_pipeline(run: Run, mode: Mode, source, names=None, truth=None, result_type=Registration):
     """The stages of every run; ``mode`` decides preprocessing, pairing and evaluation."""
     cfg, rec, prog = run.cfg, run.recorder, run.progress
-    scans, source_str, truth = load_source(source, names, cfg.min_points, truth, prog, mode.what)
+    loaded = load_source(
+        source, names, cfg.min_points, cfg.max_points_per_scan, truth, prog, mode.what
+    )
+    scans, truth = loaded.scans, loaded.truth
     run.timed("load")
     rec.log_config(cfg.model_dump(mode="json"))
     rec.log_raw_scans([s.name for s in scans], [s.points for s in scans])
@@ -89,7 +92,8 @@ def run_pipeline(run: Run, mode: Mode, source, names=None, truth=None, result_ty
         refine_log=out.refine_log,
         joint_icp=out.joint_icp,
         scans=scans,
-        source=source_str,
+        source=loaded.source,
+        skipped_files=loaded.skipped,
     )
     mode.evaluate(run, reg, pre, out.results, truth)
     run.timed("evaluate")

@@ -38,6 +38,7 @@ class Registration:
     truth_errors: dict | None = None
     scans: list[Scan] = field(default_factory=list, repr=False)
     source: str | None = None
+    skipped_files: list[dict] = field(default_factory=list)  # folder entries not read
 
     @property
     def voxel_size(self) -> float:
@@ -68,6 +69,7 @@ class Registration:
             "voxel_size": self.scales.voxel,
             "scales": self.scales.to_dict(),
             "scans": self.scan_names,
+            "skipped_files": self.skipped_files,
             "registered": list(self.T_world_scan),
             "unregistered": self.unregistered,
             "timings_s": self.timings,

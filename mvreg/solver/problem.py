@@ -19,6 +19,19 @@ from scipy.sparse.csgraph import connected_components
 
 from mvreg.errors import DisconnectedError, IllPosedError, InputError, ProblemError
 
+#: Largest magnitude of a coordinate: beyond it products of squares (the solvers' matrices
+#: and their products) could overflow float64.
+MAX_ABS_COORDINATE = 1e30
+_MAX_INDEX = 2**62
+
+
+def _as_real_array(a, name: str) -> np.ndarray:
+    """``a`` as float64; ProblemError for complex, text or object data (never truncated)."""
+    a = np.asarray(a)
+    if a.dtype.kind not in "fiub":
+        raise ProblemError(f"'{name}' must hold real numbers, got dtype {a.dtype}")
+    return a.astype(np.float64, copy=False)
+
 
 def _as_index_array(a, name: str) -> np.ndarray:
     a = np.asarray(a)
@@ -27,7 +40,11 @@ def _as_index_array(a, name: str) -> np.ndarray:
     if a.dtype.kind == "f":
         if not np.all(np.isfinite(a)) or np.any(a != np.round(a)):
             raise ProblemError(f"'{name}' must hold integers, found non-integer values")
+        if a.size and np.max(np.abs(a)) >= _MAX_INDEX:
+            raise ProblemError(f"'{name}' has an index too large ({np.max(np.abs(a)):.3g})")
         a = a.astype(np.int64)
+    elif a.dtype.kind == "u" and a.size and a.max() >= _MAX_INDEX:
+        raise ProblemError(f"'{name}' has an index too large ({a.max()})")
     elif a.dtype.kind not in "iu":
         raise ProblemError(f"'{name}' must hold integers, got dtype {a.dtype}")
     a = a.astype(np.int64, copy=False)
@@ -35,6 +52,36 @@ def _as_index_array(a, name: str) -> np.ndarray:
         bad = int(np.flatnonzero(a < 0)[0])
         raise ProblemError(f"'{name}' has a negative index ({a[bad]}) at observation {bad}")
     return a
+
+
+def _check_coords(coords: np.ndarray, patch: np.ndarray, node: np.ndarray) -> None:
+    """Every coordinate finite and small enough that its square cannot overflow."""
+    bad = ~np.all(np.isfinite(coords), axis=1)
+    if np.any(bad):
+        i = int(np.flatnonzero(bad)[0])
+        raise ProblemError(
+            f"'coords' has {int(bad.sum())} rows with NaN or inf (first: observation {i}, "
+            f"patch {patch[i]}, node {node[i]})"
+        )
+    big = float(np.max(np.abs(coords)))
+    if big > MAX_ABS_COORDINATE:
+        i = int(np.argmax(np.max(np.abs(coords), axis=1)))
+        raise ProblemError(
+            f"'coords' has a value of magnitude {big:.3g} (observation {i}): squares "
+            f"overflow float64 beyond {MAX_ABS_COORDINATE:.0e}; rescale the coordinates"
+        )
+
+
+def _checked_weight(weight, k: int) -> np.ndarray:
+    if weight is None:
+        return np.ones(k)
+    weight = _as_real_array(weight, "weight")
+    if weight.shape != (k,):
+        raise ProblemError(f"'weight' must have shape ({k},), got {weight.shape}")
+    if not np.all(np.isfinite(weight)) or np.any(weight < 0):
+        i = int(np.flatnonzero(~np.isfinite(weight) | (weight < 0))[0])
+        raise ProblemError(f"'weight' must be finite and >= 0 (observation {i} has {weight[i]})")
+    return weight
 
 
 @dataclass
@@ -65,7 +112,7 @@ class PatchProblem:
     check_well_posed: bool = field(default=True, repr=False)
 
     def __post_init__(self):
-        coords = np.asarray(self.coords, dtype=np.float64)
+        coords = _as_real_array(self.coords, "coords")
         if coords.ndim != 2 or coords.shape[1] not in (2, 3):
             raise ProblemError(f"'coords' must have shape (K, 2) or (K, 3), got {coords.shape}")
         k = coords.shape[0]
@@ -77,28 +124,17 @@ class PatchProblem:
             raise ProblemError(
                 f"'coords' has {k} rows but 'patch' has {patch.shape[0]} and 'node' {node.shape[0]}"
             )
-        bad = ~np.all(np.isfinite(coords), axis=1)
-        if np.any(bad):
-            i = int(np.flatnonzero(bad)[0])
-            raise ProblemError(
-                f"'coords' has {int(bad.sum())} rows with NaN or inf (first: observation {i}, "
-                f"patch {patch[i]}, node {node[i]})"
-            )
-        if self.weight is None:
-            weight = np.ones(k)
-        else:
-            weight = np.asarray(self.weight, dtype=np.float64)
-            if weight.shape != (k,):
-                raise ProblemError(f"'weight' must have shape ({k},), got {weight.shape}")
-            if not np.all(np.isfinite(weight)) or np.any(weight < 0):
-                i = int(np.flatnonzero(~np.isfinite(weight) | (weight < 0))[0])
-                raise ProblemError(
-                    f"'weight' must be finite and >= 0 (observation {i} has {weight[i]})"
-                )
+        _check_coords(coords, patch, node)
+        weight = _checked_weight(self.weight, k)
         m = self.num_patches
         if m is None:
             m = len(self.patch_names) if self.patch_names is not None else int(patch.max()) + 1
         m = int(m)
+        if m > k:  # checked before anything is sized by m
+            raise ProblemError(
+                f"{m} patches (largest 'patch' index {int(patch.max())}) but only {k} "
+                "observations: some patch would have no observations"
+            )
         names = (
             [str(i) for i in range(m)]
             if self.patch_names is None

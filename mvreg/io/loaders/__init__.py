@@ -3,10 +3,17 @@
     scans = load_scans("scans/")            # every supported file, natural order
     scan = load_scan("scans/bun000.ply")    # one file -> Scan
 
-Every file is checked (unreadable, empty, all-NaN, too few points -> ScanFileError
-naming the file); rows with NaN/inf coordinates are dropped and counted in
-``Scan.num_dropped_nonfinite``. Other files in the folder (``ground_truth.json``,
-``timestamps.txt``, ...) are ignored.
+Every file is checked (unreadable, empty, corrupt, all-NaN, duplicates only, too few
+or more than ``max_points`` points, dangling symlink, symlink loop, file name not valid
+UTF-8 -> ScanFileError naming the file, escaped); rows with NaN/inf coordinates are
+dropped and counted in ``Scan.num_dropped_nonfinite``.
+
+    listing = scan_folder("scans/")         # ScanListing(files, skipped)
+
+Known sidecar files (``ground_truth.json``, ``timestamps.txt``, ``synth.json``,
+``README*``, ``*.md``, ``*.conf``, mvreg's own outputs) and hidden files are ignored
+silently; any other file is returned in ``ScanListing.skipped`` with the reason, for the
+caller to warn about and report.
 """
 
 from __future__ import annotations
@@ -16,21 +23,41 @@ from collections.abc import Iterable
 from pathlib import Path
 
 from mvreg.errors import InputError, ScanFileError
-from mvreg.io.loaders.base import DEFAULT_MIN_POINTS, RawCloud, Scan, ScanLoader, validate_cloud
+from mvreg.io.loaders.base import (
+    DEFAULT_MAX_POINTS,
+    DEFAULT_MIN_POINTS,
+    RawCloud,
+    Scan,
+    ScanLoader,
+    validate_cloud,
+)
+from mvreg.io.loaders.e57 import E57Loader
+from mvreg.io.loaders.las import LasLoader
+from mvreg.io.loaders.listing import (
+    ScanListing,
+    check_file_entry,
+    display_path,
+    list_folder,
+)
 from mvreg.io.loaders.npy import NpyLoader
 from mvreg.io.loaders.ply_pcd import Open3DLoader
 
 __all__ = [
+    "DEFAULT_MAX_POINTS",
     "DEFAULT_MIN_POINTS",
     "RawCloud",
     "Scan",
+    "ScanListing",
     "ScanLoader",
+    "display_path",
     "list_scan_files",
     "load_scan",
+    "load_scan_file",
     "load_scans",
     "loader_for",
     "natural_key",
     "register_loader",
+    "scan_folder",
     "supported_suffixes",
 ]
 
@@ -45,7 +72,7 @@ def register_loader(loader: ScanLoader) -> None:
         _REGISTRY[suffix.lower()] = loader
 
 
-for _loader in (Open3DLoader(), NpyLoader()):
+for _loader in (Open3DLoader(), NpyLoader(), LasLoader(), E57Loader()):
     register_loader(_loader)
 
 
@@ -60,7 +87,8 @@ def loader_for(path: str | Path) -> ScanLoader:
         return _REGISTRY[suffix]
     except KeyError:
         raise ScanFileError(
-            path, f"unsupported file type {suffix!r} (supported: {', '.join(supported_suffixes())})"
+            display_path(path),
+            f"unsupported file type {suffix!r} (supported: {', '.join(supported_suffixes())})",
         ) from None
 
 
@@ -70,55 +98,131 @@ def natural_key(name: str) -> tuple:
     return tuple((0, int(p), "") if p.isdigit() else (1, 0, p.lower()) for p in parts)
 
 
-def load_scan(path: str | Path, min_points: int = DEFAULT_MIN_POINTS) -> Scan:
-    """Read and check one scan file.
+def load_scan_file(
+    path: str | Path,
+    min_points: int = DEFAULT_MIN_POINTS,
+    max_points: int | None = DEFAULT_MAX_POINTS,
+) -> list[Scan]:
+    """Read and check every scan of one file (one, or several for E57).
+
+    Args:
+        min_points: fewest valid, distinct points a scan must have.
+        max_points: most points a scan may have (``max_points_per_scan``, default
+            50 million); checked from the header or the file before reading it. None: no
+            limit.
 
     Raises:
-        ScanFileError: missing, unreadable, empty, corrupt, all-NaN, or fewer than
-            ``min_points`` valid points.
+        ScanFileError: missing, unreadable, empty, corrupt, all-NaN, duplicates only,
+            fewer than ``min_points`` valid points or more than ``max_points`` points,
+            dangling symlink, symlink loop or a file name that is not valid UTF-8.
     """
     path = Path(path)
     loader = loader_for(path)
-    if not path.is_file():
-        raise ScanFileError(path, "no such file")
-    try:
-        size = path.stat().st_size
-    except OSError as e:
-        raise ScanFileError(path, f"cannot read file ({e.strerror or e})") from e
+    size = check_file_entry(path)
     if size == 0:
         raise ScanFileError(path, "empty file (0 bytes)")
-    return validate_cloud(path, loader.read(path), min_points=min_points)
+    count = getattr(loader, "count_points", None)
+    many = getattr(loader, "read_many", None)
+    try:
+        n = count(path) if max_points is not None and count is not None else 0
+        if max_points is not None and n > max_points:
+            raise ScanFileError(
+                path,
+                f"{n} points, more than the limit of {max_points} points per scan "
+                "(max_points_per_scan; raise it if the machine has the memory)",
+            )
+        raws = many(path) if many is not None else [loader.read(path)]
+    except ScanFileError:
+        raise
+    except OSError as e:
+        raise ScanFileError(path, f"cannot read file ({e.strerror or e})") from e
+    except Exception as e:  # noqa: BLE001 - whatever a format library raises: name the file
+        raise ScanFileError(path, f"cannot read file ({type(e).__name__}: {e})") from e
+    return [validate_cloud(path, raw, min_points=min_points) for raw in raws]
 
 
-def list_scan_files(folder: str | Path) -> list[Path]:
-    """Scan files of ``folder`` (supported suffixes, not hidden) in natural sort order.
+def load_scan(
+    path: str | Path,
+    min_points: int = DEFAULT_MIN_POINTS,
+    max_points: int | None = DEFAULT_MAX_POINTS,
+) -> Scan:
+    """Read and check a file holding one scan (see :func:`load_scan_file`).
+
+    Raises:
+        ScanFileError: as :func:`load_scan_file`, or the file holds several scans.
+    """
+    scans = load_scan_file(path, min_points=min_points, max_points=max_points)
+    if len(scans) != 1:
+        raise ScanFileError(
+            path, f"holds {len(scans)} scans; load it with load_scans or load_scan_file"
+        )
+    return scans[0]
+
+
+_SIDECAR_NAMES = {
+    "ground_truth.json",
+    "timestamps.txt",
+    "synth.json",
+    "poses.json",
+    "poses_tum.txt",
+    "poses_kitti.txt",
+    "report.json",
+    "recording.rrd",
+}
+_SIDECAR_SUFFIXES = {".md", ".conf", ".rrd"}
+
+
+def _is_sidecar(name: str) -> bool:
+    low = name.lower()
+    return (
+        low in _SIDECAR_NAMES
+        or Path(low).suffix in _SIDECAR_SUFFIXES
+        or low.startswith("readme")
+        or low.startswith(".")
+    )
+
+
+def scan_folder(folder: str | Path) -> ScanListing:
+    """The scan files of ``folder`` in natural order, and the other files skipped.
+
+    Hidden files and known sidecar files are ignored silently; every other entry that is
+    not a scan file of a supported suffix is in ``skipped`` with the reason.
 
     Raises:
         InputError: ``folder`` is not a directory or holds no scan file.
+        ScanFileError: a scan file (supported suffix) is a dangling symlink, a symlink
+            loop, not a regular file, or its name is not valid UTF-8.
     """
-    folder = Path(folder)
-    if not folder.is_dir():
-        raise InputError(f"{folder}: not a folder")
-    files = [
-        p
-        for p in folder.iterdir()
-        if p.is_file() and not p.name.startswith(".") and p.suffix.lower() in _REGISTRY
-    ]
-    if not files:
+    listing = list_folder(Path(folder), set(_REGISTRY), _is_sidecar)
+    if not listing.files:
         raise InputError(
-            f"{folder}: no scan files found (supported: {', '.join(supported_suffixes())})"
+            f"{display_path(folder)}: no scan files found "
+            f"(supported: {', '.join(supported_suffixes())})"
         )
-    return sorted(files, key=lambda p: natural_key(p.name))
+    listing.files.sort(key=lambda p: natural_key(p.name))
+    return listing
+
+
+def list_scan_files(folder: str | Path) -> list[Path]:
+    """Scan files of ``folder`` in natural sort order (see :func:`scan_folder`)."""
+    return scan_folder(folder).files
 
 
 def load_scans(
-    source: str | Path | Iterable[str | Path], min_points: int = DEFAULT_MIN_POINTS
+    source: str | Path | Iterable[str | Path],
+    min_points: int = DEFAULT_MIN_POINTS,
+    max_points: int | None = DEFAULT_MAX_POINTS,
 ) -> list[Scan]:
-    """Load every scan of a folder (or an explicit list of files), in natural order."""
+    """Load every scan of a folder (or an explicit list of files), in natural order
+    (the scans of a multi-scan E57 file in the file's order)."""
     if isinstance(source, (str, Path)):
         paths = list_scan_files(source)
     else:
         paths = [Path(p) for p in source]
         if not paths:
             raise InputError("no scan files given")
-    return [load_scan(p, min_points=min_points) for p in paths]
+    return [
+        scan
+        for p in paths
+        for scan in load_scan_file(p, min_points=min_points, max_points=max_points)
+    ]

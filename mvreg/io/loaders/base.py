@@ -12,6 +12,9 @@ from mvreg.errors import ScanFileError
 
 #: Default minimum number of valid points a scan must have.
 DEFAULT_MIN_POINTS = 100
+#: Default largest number of points a scan may have (``max_points_per_scan``): about
+#: 1.2 GB of float64 coordinates, and several times that while registering.
+DEFAULT_MAX_POINTS = 50_000_000
 
 
 @dataclass
@@ -22,6 +25,8 @@ class RawCloud:
     normals: np.ndarray | None = None
     colors: np.ndarray | None = None
     sensor_origin: np.ndarray | None = None
+    name: str | None = None  # default: the file name (several scans per file: set it)
+    pose_hint: np.ndarray | None = None  # stored (4, 4) scanner-to-world pose, if any
 
 
 @dataclass
@@ -37,6 +42,8 @@ class Scan:
         num_dropped_nonfinite: rows removed because a coordinate was NaN or inf.
         sensor_origin: (3,) float64 sensor position in the scan frame when the file
             records one (PCD ``VIEWPOINT`` other than the default), else None.
+        T_world_scan_hint: (4, 4) float64 scan-to-world pose stored in the file (E57
+            scanner poses), a possible initial guess; None when the file has none.
     """
 
     name: str
@@ -46,6 +53,7 @@ class Scan:
     colors: np.ndarray | None = None
     num_dropped_nonfinite: int = 0
     sensor_origin: np.ndarray | None = field(default=None)
+    T_world_scan_hint: np.ndarray | None = field(default=None, repr=False)
 
     @property
     def num_points(self) -> int:
@@ -85,6 +93,39 @@ def _optional_rows(path: Path, a: np.ndarray | None, n: int, what: str) -> np.nd
     return a
 
 
+def _pose_hint(t) -> np.ndarray | None:
+    """A stored pose as (4, 4) float64 when it is finite and rigid, else None."""
+    if t is None:
+        return None
+    t = np.asarray(t, dtype=np.float64)
+    if t.shape != (4, 4) or not np.all(np.isfinite(t)):
+        return None
+    r = t[:3, :3]
+    if np.max(np.abs(r.T @ r - np.eye(3))) > 1e-6 or np.linalg.det(r) < 0:
+        return None
+    return t
+
+
+def count_distinct(points: np.ndarray) -> int:
+    """Number of distinct rows of an (N, 3) float64 array."""
+    rows = np.ascontiguousarray(points).view(np.dtype((np.void, points.dtype.itemsize * 3)))
+    return int(np.unique(rows.ravel()).shape[0])
+
+
+def _check_distinct(path: Path, pts: np.ndarray, min_points: int) -> None:
+    """Refuse a scan with fewer than ``min_points`` distinct points (duplicates only)."""
+    head = pts[: 4 * max(min_points, 1)]
+    if count_distinct(head) >= min_points:
+        return  # the common case, decided on a few rows
+    k = count_distinct(pts)
+    if k < min_points:
+        raise ScanFileError(
+            path,
+            f"{len(pts)} points but only {k} distinct; need min_points = {min_points} "
+            "distinct points",
+        )
+
+
 def validate_cloud(path: Path, raw: RawCloud, min_points: int = DEFAULT_MIN_POINTS) -> Scan:
     """Common checks of every loaded file -> :class:`Scan`.
 
@@ -117,17 +158,19 @@ def validate_cloud(path: Path, raw: RawCloud, min_points: int = DEFAULT_MIN_POIN
         normals = None
     if colors is not None and not np.all(np.isfinite(colors)):
         colors = None
+    _check_distinct(path, pts, min_points)
     origin = None
     if raw.sensor_origin is not None:
         origin = np.asarray(raw.sensor_origin, dtype=np.float64).reshape(3)
         if not np.all(np.isfinite(origin)):
             origin = None
     return Scan(
-        name=path.name,
+        name=raw.name or path.name,
         path=path,
         points=np.ascontiguousarray(pts),
         normals=normals,
         colors=colors,
         num_dropped_nonfinite=n - num_valid,
         sensor_origin=origin,
+        T_world_scan_hint=_pose_hint(raw.pose_hint),
     )

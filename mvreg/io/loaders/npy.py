@@ -18,6 +18,14 @@ from mvreg.io.loaders.base import RawCloud
 class NpyLoader:
     suffixes = (".npy",)
 
+    def count_points(self, path: Path) -> int:
+        """Rows of the stored array (reads the header only)."""
+        try:
+            a = np.load(path, mmap_mode="r", allow_pickle=False)
+        except (OSError, ValueError, EOFError) as e:
+            raise ScanFileError(path, f"cannot read as a NumPy array ({e})") from e
+        return int(a.shape[0]) if isinstance(a, np.ndarray) and a.ndim >= 1 else 0
+
     def read(self, path: Path) -> RawCloud:
         try:
             a = np.load(path, allow_pickle=False)

@@ -13,12 +13,12 @@ import numpy as np
 
 import bench.peers
 from bench.common import ROOT, SHARED
-from bench.peers.common import CONDITIONS
 from bench.peers.datasets import run_bunny, run_synth
 from bench.peers.gtsam import gtsam_solve
 from bench.peers.open3d import run_open3d_fed, run_open3d_own
 from bench.peers.patches import patch_worker, run_patches
 from bench.peers.report import write_report
+from bench.peers.settings import CONDITIONS
 
 
 def warm_up() -> None:

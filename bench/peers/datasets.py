@@ -14,10 +14,10 @@ import numpy as np
 
 from bench.common import BUNNY, bunny_truth
 from bench.peers.chaining import chain_mvreg_pairs
-from bench.peers.common import CONDITIONS, REFERENCE, ROT_OK_DEG, TR_OK_PCT
 from bench.peers.gtsam import gtsam_solve
 from bench.peers.mvreg_run import global_seconds, rerun_global, run_default
 from bench.peers.open3d import run_open3d_fed, run_open3d_own
+from bench.peers.settings import CONDITIONS, REFERENCE, ROT_OK_DEG, TR_OK_PCT
 
 
 def evaluate(T_world: dict, names, scans_by_name, truth, overlap_dist, unit_scale) -> dict:

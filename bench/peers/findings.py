@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from bench.peers.common import REFERENCE, ROT_OK_DEG, TIE, TIE_TIME, TR_OK_PCT, ordered_methods
+from bench.peers.settings import REFERENCE, ROT_OK_DEG, TIE, TIE_TIME, TR_OK_PCT, ordered_methods
 
 
 def _verdict(p, m, unit, who="mvreg") -> str:

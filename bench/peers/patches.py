@@ -15,8 +15,8 @@ import time
 import numpy as np
 
 from bench.common import ROOT
-from bench.peers.common import PATCH
 from bench.peers.gtsam import gtsam_solve
+from bench.peers.settings import PATCH
 
 SCRIPT = ROOT / "scripts" / "bench_peers.py"  # its --patch-worker runs one case
 

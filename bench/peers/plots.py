@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from bench.peers.common import REFERENCE, ROT_OK_DEG, ordered_methods
+from bench.peers.settings import REFERENCE, ROT_OK_DEG, ordered_methods
 
 
 def plots(a, bunny, synth, patches) -> list[str]:

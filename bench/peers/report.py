@@ -9,9 +9,9 @@ import os
 import numpy as np
 
 from bench.common import machine
-from bench.peers.common import CONDITIONS, REFERENCE, fmt, ordered_methods, ratio
 from bench.peers.findings import findings, why
 from bench.peers.plots import plots
+from bench.peers.settings import CONDITIONS, REFERENCE, fmt, ordered_methods, ratio
 
 
 def scan_table(rows, unit) -> list[str]:

@@ -1,4 +1,4 @@
-"""Constants and formatting shared by the peer benchmark's modules.
+"""Settings and formatting shared by the peer benchmark's modules.
 
 CONDITIONS: data_synth.synthesize_scans arguments per synthetic condition; ROT_OK_DEG /
 TR_OK_PCT: targets used only to count "within target" runs; TIE / TIE_TIME: relative

@@ -5,8 +5,8 @@ Same inputs, same machine, same run. Per dataset, every method gets the same raw
 
 * ``mvreg`` -- ``mvreg.pipeline.register`` with default settings (global solver reg-admm);
 * ``mvreg/<solver>`` -- the same pipeline with each other registered global solver
-  (``solve.solver``), reusing the default run's loaded scans, preprocessing and pairwise
-  results (so only the global stage differs); ``mvreg/no-refine`` -- defaults without the
+  (``solve.solver``), reusing the default run's preprocessing and pairwise results through
+  the public staged API (:mod:`bench.peers.mvreg_run`; so only the global stage differs); ``mvreg/no-refine`` -- defaults without the
   multiview-ICP refinement rounds and the joint ICP (global solve + robust re-weighting
   only);
 * ``open3d`` -- Open3D multiway registration as its documentation teaches it (the
@@ -48,6 +48,11 @@ limit. The other mvreg solvers run on the bunny and the clean synthetic sets onl
 (``--all-solvers``: everywhere). Rows are checkpointed after each dataset (``--resume``).
 
 Writes docs/benchmarks/peers.md, peers_*.png and peers.json (raw numbers).
+
+Modules: :mod:`.mvreg_run` (mvreg and its variants), :mod:`.open3d`, :mod:`.gtsam`,
+:mod:`.chaining` (one per peer); :mod:`.graph` (spanning trees); :mod:`.datasets` (every
+method on a folder of scans), :mod:`.patches` (patch problems); :mod:`.report`,
+:mod:`.plots`, :mod:`.findings` (peers.md); :mod:`.settings`; :mod:`.cli` (the options).
 
     OPENBLAS_NUM_THREADS=1 python scripts/bench_peers.py              # full
     OPENBLAS_NUM_THREADS=1 python scripts/bench_peers.py --quick      # bunny + one mesh, M <= 1000

@@ -1,4 +1,5 @@
-"""Conventions of the peer benchmark's adapters (scripts/bench_peers.py), on exact data.
+"""Conventions of the peer benchmark's adapters (bench.peers, scripts/bench_peers.py), on
+exact data.
 
 Open3D's pose graph and GTSAM's between factors each have their own direction and tangent
 convention; a sign or frame mistake would make a peer look worse than it is. Here every
@@ -7,9 +8,7 @@ adapter must recover known poses from noise-free edges. A few seconds.
 
 from __future__ import annotations
 
-import importlib.util
-import sys
-from pathlib import Path
+from types import SimpleNamespace
 
 import numpy as np
 import pytest
@@ -17,18 +16,20 @@ import pytest
 pytest.importorskip("gtsam")
 pytest.importorskip("open3d")
 
-ROOT = Path(__file__).resolve().parents[1]
-
 
 @pytest.fixture(scope="module")
 def bp():
-    spec = importlib.util.spec_from_file_location(
-        "bench_peers", ROOT / "scripts" / "bench_peers.py"
+    from bench.peers.gtsam import gtsam_solve
+    from bench.peers.open3d import o3d_optimize, o3d_prepare, run_open3d_fed
+    from bench.peers.patches import kabsch_edges
+
+    return SimpleNamespace(
+        gtsam_solve=gtsam_solve,
+        kabsch_edges=kabsch_edges,
+        o3d_optimize=o3d_optimize,
+        o3d_prepare=o3d_prepare,
+        run_open3d_fed=run_open3d_fed,
     )
-    mod = importlib.util.module_from_spec(spec)
-    sys.modules["bench_peers"] = mod
-    spec.loader.exec_module(mod)
-    return mod
 
 
 def _random_poses(rng, n, scale=1.0):
@@ -108,25 +109,24 @@ def test_open3d_optimizer_edge_direction(bp):
         np.testing.assert_allclose(out[k], T_true[k], atol=1e-4)
 
 
-def test_reuse_stages_runs_register_with_another_solver(bp, tmp_path):
-    """The mvreg solver variants rerun register() on the cached stages of a first run;
-    this must keep working as mvreg.pipeline changes."""
-    import copy
-
+def test_rerun_global_runs_register_with_another_solver(tmp_path):
+    """The mvreg solver variants rerun the pipeline on the cached stages of a first run
+    (public staged API: run_pipeline with a mode replaying them); this must keep working
+    as mvreg.pipeline changes."""
+    from bench.peers.mvreg_run import rerun_global, run_default
     from data_synth import synthesize_scans
-    from mvreg.pipeline import register
 
     synthesize_scans(
         "builtin", tmp_path / "s", views=4, points_per_scan=3000, seed=0, random_frames=True
     )
-    cap = {}
-
-    def hook(pre, results):
-        cap["pre"], cap["results"] = pre, copy.deepcopy(results)
-        return results
-
-    first = register(tmp_path / "s", pair_hook=hook)
-    with bp.reuse_stages(first.scans, cap["pre"], cap["results"]):
-        again = register(tmp_path / "s", **{"solve.solver": "spectral", "refine.rounds": 0})
+    first, cached = run_default(tmp_path / "s", None, 0)
+    again = rerun_global(
+        tmp_path / "s", cached, seed=0, **{"solve.solver": "spectral", "refine.rounds": 0}
+    )
     assert set(again.T_world_scan) == set(first.T_world_scan)
     assert again.timings["pairwise"] < 1.0  # the cached pairs, not a new alignment
+    assert again.config.solve.solver == "spectral"
+    # Same settings on the same cached stages: the same poses as the first run.
+    same = rerun_global(tmp_path / "s", cached, seed=0)
+    for name, T in first.T_world_scan.items():
+        np.testing.assert_allclose(same.T_world_scan[name], T, atol=1e-9)

@@ -128,7 +128,7 @@ def test_no_private_names_imported_across_modules():
 
 def test_tests_and_scripts_import_no_private_mvreg_names():
     bad = []
-    for folder in (ROOT / "tests", ROOT / "scripts"):
+    for folder in (ROOT / "tests", ROOT / "scripts", ROOT / "bench"):
         for path in sorted(folder.rglob("*.py")):
             for node in ast.walk(ast.parse(path.read_text())):
                 if isinstance(node, ast.ImportFrom) and (node.module or "").startswith("mvreg"):

@@ -221,3 +221,24 @@ def test_sequence_tracks_keep_their_normal_agreement_unless_given():
     given = load_config(**{"tracks.min_normal_cos": 0.8})
     assert sequence_tracks_config(given.tracks, SequenceConfig()).min_normal_cos == 0.8
     assert sequence_tracks_config(cfg.tracks, SequenceConfig()).max_correspondences_per_pair == 400
+
+
+def test_cli_sequence_with_ground_truth_in_the_folder(loop, tmp_path):
+    """Issue 16: `register --sequence` on `mvreg synth --sequence` output (ground_truth.json
+    beside the scans) used to exit 4 (KeyError 'translation_at_centroid_max') after
+    writing its files; the summary and the report now carry the same errors as register."""
+    import json
+
+    from typer.testing import CliRunner
+
+    from mvreg.cli import app
+
+    out = tmp_path / "out"
+    res = CliRunner().invoke(
+        app, ["register", str(loop.out_dir), "--out", str(out), "--sequence", "--no-rrd"]
+    )
+    assert res.exit_code in (0, 3), res.output
+    report = json.loads((out / "report.json").read_text())
+    e = report["ground_truth_errors"]
+    assert e["translation_at_centroid_max"] >= 0 and e["rotation_deg_max"] < 0.5
+    assert "sequence" in report and report["sequence"]["drift"]["closed_loop"] in (True, False)

@@ -67,9 +67,11 @@ WRONG_DEG = 2.0
 
 
 def corpus(meshes_filter: str | None) -> list[str]:
-    names = sorted(
-        (p.name for p in MESHES.iterdir() if p.suffix.lower() in MESH_EXTS), key=str.lower
-    ) if MESHES.is_dir() else []
+    names = (
+        sorted((p.name for p in MESHES.iterdir() if p.suffix.lower() in MESH_EXTS), key=str.lower)
+        if MESHES.is_dir()
+        else []
+    )
     names += [f"builtin:{i}" for i in range(1, 6)]
     if not meshes_filter:
         return names
@@ -229,11 +231,21 @@ def run_case(mesh: str, seed: int, res: str, views: int, work: Path, timeout: fl
     row["scans"] = len(names)
     if out_dir.exists():
         shutil.rmtree(out_dir)
-    cmd = cli() + ["register", str(scans_dir), "--out", str(out_dir), "--no-rrd", "--seed", str(seed)]
+    cmd = cli() + [
+        "register",
+        str(scans_dir),
+        "--out",
+        str(out_dir),
+        "--no-rrd",
+        "--seed",
+        str(seed),
+    ]
     row["load_avg_start"] = [round(x, 2) for x in os.getloadavg()]
     t0 = time.perf_counter()
     try:
-        r = subprocess.run(cmd, env=env(), capture_output=True, text=True, cwd=ROOT, timeout=timeout)
+        r = subprocess.run(
+            cmd, env=env(), capture_output=True, text=True, cwd=ROOT, timeout=timeout
+        )
         rc, stderr = r.returncode, r.stderr
     except subprocess.TimeoutExpired:
         rc, stderr = "timeout", ""
@@ -308,7 +320,9 @@ def finish(row: dict) -> dict:
         kinds.append("all on target but exit != 0")
     row["failure_kinds"] = kinds
     if row["symmetric"] != "no":
-        row["pass"] = row["claimed_beyond_2deg"] == 0 and bool(per or row.get("exit_code") not in (0, None))
+        row["pass"] = row["claimed_beyond_2deg"] == 0 and bool(
+            per or row.get("exit_code") not in (0, None)
+        )
         row["symmetric_guess_exit0"] = bool(exit0 and row["claimed_beyond_2deg"] > 0)
     else:
         row["pass"] = fully and exit0
@@ -404,7 +418,10 @@ def write_outputs(out: Path, rows: list[dict], meta: dict, total: int) -> None:
     s = summary
     L = ["# Generalization benchmark", ""]
     if partial:
-        L += [f"**PARTIAL: {len(rows)} of {total} runs done** (the rest did not finish in time).", ""]
+        L += [
+            f"**PARTIAL: {len(rows)} of {total} runs done** (the rest did not finish in time).",
+            "",
+        ]
     L += [
         "`mvreg register` on objects scanned as a new user would (issue 13, item 3): 10 views "
         "on a sphere, scans in random frames, range noise 0.2% of the diagonal; every mesh in "
@@ -440,7 +457,10 @@ def write_outputs(out: Path, rows: list[dict], meta: dict, total: int) -> None:
         "Failure kinds (a run can have several): "
         + (", ".join(f"{k}: {v}" for k, v in sorted(s["failure_kinds_all"].items())) or "none")
         + ". Non-symmetric only: "
-        + (", ".join(f"{k}: {v}" for k, v in sorted(s["failure_kinds_nonsymmetric"].items())) or "none")
+        + (
+            ", ".join(f"{k}: {v}" for k, v in sorted(s["failure_kinds_nonsymmetric"].items()))
+            or "none"
+        )
         + ".",
         "",
         "## Per mesh",
@@ -497,11 +517,15 @@ def main(argv: list[str] | None = None) -> dict:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--seeds", type=int, default=3, help="seeds 0..N-1 (default 3)")
     ap.add_argument("--resolutions", default="sparse,dense", help=f"from {list(RESOLUTIONS)}")
-    ap.add_argument("--meshes", default=None, help="comma-separated globs/substrings (e.g. 'bunny,builtin:*')")
+    ap.add_argument(
+        "--meshes", default=None, help="comma-separated globs/substrings (e.g. 'bunny,builtin:*')"
+    )
     ap.add_argument("--views", type=int, default=10)
     ap.add_argument("--jobs", type=int, default=1)
     ap.add_argument("--out", type=Path, default=ROOT / "docs" / "benchmarks")
-    ap.add_argument("--work", type=Path, default=None, help="scan/result folder (default: a temp dir)")
+    ap.add_argument(
+        "--work", type=Path, default=None, help="scan/result folder (default: a temp dir)"
+    )
     ap.add_argument("--timeout", type=float, default=1800.0, help="per register run, s")
     ap.add_argument("--quick", action="store_true",
                     help="smallest configuration: builtin:1, seed 0, 5 views, ~1500 points (tiny)")  # fmt: skip

@@ -494,7 +494,7 @@ PROBLEM_CASES = [
     ),  # fmt: skip
     _problem_case("missing-node", lambda a: a.pop("node"), "missing array(s) node"),
     _problem_case("out-is-dir", _nothing, "r.json", "is a folder", args=("--out-dir",)),
-    _problem_case("seed-negative", _nothing, "--seed", args=("--seed", "-5")),
+    _problem_case("seed-negative", _nothing, "seed", args=("--seed", "-5")),
     _problem_case("node-1e18-ok", _set("node", lambda n: n * 10**15 + 10**18), code=0),
 ]
 

@@ -39,6 +39,8 @@ from mvreg.refine import (
     robust_rounds,
     solve_tracks,
 )
+from mvreg.verification import NOTE as VERIFICATION_NOTE
+from mvreg.verification import ScanVerification, verify_and_resolve
 from mvreg.viz import NullRecorder
 
 
@@ -53,8 +55,11 @@ class Registration:
     """The result of ``register``.
 
     T_world_scan: {scan name: (4, 4) world_from_scan} for every registered scan; the world
-    frame is the first registered scan. ``unregistered`` lists the scans that could not be
-    connected to the rest (never given a made-up pose).
+    frame is the first registered scan; every pose in it is verified
+    (:mod:`mvreg.verification`). ``unregistered`` lists the scans that could not be
+    connected to the rest (never given a made-up pose); ``unverified`` and
+    ``undetermined`` those left out because no independent evidence confirms their pose or
+    a degree of freedom of it is not fixed by the data (``verification`` says why).
     """
 
     scan_names: list[str]
@@ -72,10 +77,14 @@ class Registration:
     truth_errors: dict | None = None
     scans: list[Scan] = field(default_factory=list, repr=False)
     source: str | None = None
+    unverified: list[str] = field(default_factory=list)  # left out: pose not confirmed
+    undetermined: list[str] = field(default_factory=list)  # left out: a free DOF
+    verification: dict = field(default_factory=dict)  # {scan: ScanVerification.to_dict()}
 
     @property
     def all_registered(self) -> bool:
-        return not self.unregistered
+        """Every scan placed and its pose verified."""
+        return not (self.unregistered or self.unverified or self.undetermined)
 
     def __repr__(self) -> str:
         c = self.solve.certificate if self.solve is not None else None
@@ -96,6 +105,9 @@ class Registration:
             "scans": self.scan_names,
             "registered": list(self.T_world_scan),
             "unregistered": self.unregistered,
+            "unverified": self.unverified,
+            "undetermined": self.undetermined,
+            "verification": {"scans": self.verification, "note": VERIFICATION_NOTE},
             "timings_s": self.timings,
             "pairs": self.pairs,
             "bad_pairs": [p for p in self.pairs if p["accepted"] and p["final_weight"] == 0.0],
@@ -176,34 +188,53 @@ def register(
         rec.log_solver_iteration(step[0], r.objective, r.primal_residual, r.dual_residual, r.rho)
 
     dense_levels = prepare_dense_levels(scans, pre, cfg)  # in the background meanwhile
-    w0, robust_log = _cycle_check(pre, results, cfg)
-    tracks = build_tracks(pre, results, cfg.tracks, pair_weights=w0, workers=cfg.workers)
-    sol: GlobalSolution | None = None
-    weights = np.zeros(len(tracks.pairs))
-    refine_log, joint_log = [], None
-    if tracks.problem is not None:
+
+    def global_stage(res) -> _GlobalStage:
+        """Tracks -> global solve -> robust -> refinement -> joint ICP -> final check."""
+        w0, rlog = _cycle_check(pre, res, cfg)
+        tracks = build_tracks(pre, res, cfg.tracks, pair_weights=w0, workers=cfg.workers)
+        st = _GlobalStage(tracks, None, np.zeros(len(tracks.pairs)), rlog)
+        if tracks.problem is None:
+            return st
         sol = solve_tracks(tracks, cfg, callback=on_iteration)
         timed("tracks_and_solve")
         prog.stage("robust re-weighting")
         sol, weights, log = robust_rounds(
             tracks, sol, voxel, cfg, callback=on_iteration, weights=w0
         )
-        robust_log += log
+        st.robust_log += log
         timed("robust")
         prog.stage("refinement", cfg.refine.rounds)
-        sol, refine_log = refine_rounds(
+        sol, st.refine_log = refine_rounds(
             pre, sol, cfg, callback=on_iteration, scans=scans, dense_levels=dense_levels
         )
         if cfg.refine.rounds:
             levels = dense_levels.result() if dense_levels is not None else None
-            sol, joint_log = joint_icp(pre, sol, cfg, levels=levels)
-        weights = _final_check(pre, results, tracks, weights, sol, voxel, cfg, robust_log)
+            sol, st.joint_log = joint_icp(pre, sol, cfg, levels=levels)
+        st.sol = sol
+        st.weights = _final_check(pre, res, tracks, weights, sol, voxel, cfg, st.robust_log)
         timed("refine")
+        return st
+
+    stage = global_stage(results)
+    # Verification: scans not confirmed by independent evidence leave; the rest is solved
+    # again without their pairs (mvreg.verification).
+    stage, verification, dropped = verify_and_resolve(
+        pre, results, stage, global_stage, voxel, cfg.align
+    )
+    timed("verify")
     prog.done()
+    tracks, weights, robust_log = stage.tracks, stage.weights, stage.robust_log
+    refine_log, joint_log, sol = stage.refine_log, stage.joint_log, stage.sol
 
     names_all = [s.name for s in scans]
-    T = {} if sol is None else {names_all[i]: sol.T_world_scan[i] for i in sorted(sol.T_world_scan)}
-    unregistered = [n for n in names_all if n not in T]
+    T = {names_all[i]: sol.T_world_scan[i] for i in sorted(stage.T_world_scan) if i not in dropped}
+    unregistered = [n for k, n in enumerate(names_all) if n not in T and k not in dropped]
+    status = {names_all[k]: v for k, v in verification.items()}
+    for n in unregistered:
+        status[n] = ScanVerification(
+            "unregistered", "not connected to the others by accepted pairs"
+        )
     pair_table = _pair_table(results, tracks, weights)
     reg = Registration(
         scan_names=names_all,
@@ -219,6 +250,9 @@ def register(
         joint_icp=joint_log,
         scans=scans,
         source=source_str,
+        unverified=[n for n in names_all if status.get(n) and status[n].status == "unverified"],
+        undetermined=[n for n in names_all if status.get(n) and status[n].status == "undetermined"],
+        verification={n: status[n].to_dict() for n in names_all if n in status},
     )
     _evaluate(reg, pre, truth)
     timed("evaluate")
@@ -229,6 +263,29 @@ def register(
         if cfg.output.record_pair_correspondences and rec.enabled:
             _record_pairs(rec, sol, names_all)
     return reg
+
+
+@dataclass
+class _GlobalStage:
+    """What one run of the global stage produced (re-run by the verification)."""
+
+    tracks: object
+    sol: GlobalSolution | None
+    weights: np.ndarray
+    robust_log: list[dict]
+    refine_log: list[dict] = field(default_factory=list)
+    joint_log: dict | None = None
+
+    @property
+    def T_world_scan(self) -> dict[int, np.ndarray]:
+        return {} if self.sol is None else self.sol.T_world_scan
+
+    @property
+    def pair_weight(self) -> dict[tuple[int, int], float]:
+        return {
+            (int(i), int(j)): float(w)
+            for (i, j), w in zip(self.tracks.pairs, self.weights, strict=True)
+        }
 
 
 def _cycle_check(pre, results, cfg) -> tuple[np.ndarray, list[dict]]:

@@ -275,18 +275,34 @@ def _summary_table(reg) -> None:
     t.add_row("scans", f"{len(reg.scan_names)} ({len(reg.T_world_scan)} registered)")
     if reg.unregistered:
         t.add_row("[red]unregistered[/]", ", ".join(reg.unregistered))
+    ver = getattr(reg, "verification", None) or {}
+    if ver:
+        n_ok = sum(1 for v in ver.values() if v["status"] == "verified")
+        t.add_row(
+            "verified poses",
+            f"verified: {n_ok} of {len(reg.scan_names)}"
+            + ("" if n_ok == len(reg.scan_names) else " [red](partial result)[/]"),
+        )
+        for name, v in ver.items():
+            if v["status"] in ("unverified", "undetermined"):
+                t.add_row(f"[red]{v['status']}[/]", f"{name}: {v['reason']}")
+                if v["degenerate_dof"]:
+                    t.add_row("", f"  free: {v['degenerate_dof']}")
     accepted = [p for p in reg.pairs if p["accepted"]]
     bad = [p for p in accepted if p["final_weight"] == 0.0]
     t.add_row(
         "pairs", f"{len(reg.pairs)} tried, {len(accepted)} accepted, {len(bad)} down-weighted to 0"
     )
     if c is not None:
-        t.add_row("certified optimum", "yes" if c.certified else "[red]no[/]")
+        t.add_row(
+            "global solve certified optimal for the accepted pairs",
+            "yes" if c.certified else "[red]no[/]",
+        )
     j = getattr(reg, "joint_icp", None)
     if j:
         moved = (
-            f"moved the certified poses by at most {j['max_rotation_change_deg']:.3f} deg, "
-            f"{j['max_point_move_voxels']:.2f} voxels"
+            "moved the poses of the certified solve by at most "
+            f"{j['max_rotation_change_deg']:.3f} deg, {j['max_point_move_voxels']:.2f} voxels"
         )
         t.add_row(
             "joint point-to-plane ICP",
@@ -430,7 +446,8 @@ def register_folder(
         f"wrote {', '.join(str(p) for p in paths.values() if p.exists())}"
         + (f", {rrd_path}" if rrd_path is not None else "")
     )
-    return 3 if reg.unregistered else 0
+    partial = reg.unregistered or getattr(reg, "unverified", []) or getattr(reg, "undetermined", [])
+    return 3 if partial else 0
 
 
 @app.command(epilog="Example:  mvreg demo --out demo_out --views 12 --seed 0")

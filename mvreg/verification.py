@@ -396,18 +396,16 @@ def verify_scans(
         if problems:
             v.status, v.reason = "unverified", "; ".join(problems)
     # Free-space conflicts: count against s when the other scan stands on its own.
+    stands = {k for k in scans if out[k].status == "verified"}  # before any conflict
     for s in scans:
         v = out[s]
-        if v.status != "verified" or v.evidence == "cycle":
+        if v.status == "undetermined" or v.evidence == "cycle":
             continue
-        against = [
-            why
-            for k, why in conflicts.get(s, [])
-            if out[k].evidence == "cycle" or out[k].status == "verified"
-        ]
+        against = [why for k, why in conflicts.get(s, []) if k in stands]
         if against:
-            v.status, v.reason = "unverified", "; ".join(against)
-        else:
+            v.reason = "; ".join(([v.reason] if v.reason else []) + against)
+            v.status = "unverified"
+        elif v.status == "verified":
             v.evidence = "model"
     return out
 

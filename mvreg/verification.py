@@ -23,11 +23,15 @@ Contract (pure functions on arrays, preprocessed scans and pair results; no I/O)
     (b) a scan-to-model check under the final pose against the union of the other
         registered scans: overlap share and residual passing the pairwise acceptance rule
         (``AlignConfig.min_overlap_ratio``, ``max_residual_ratio`` x the scans' noise),
-        tight support from at least two other scans (so not only the single partner pair),
-        and both free-space tests (:func:`mvreg.pairwise.align.free_space_violation`,
-        :func:`~mvreg.pairwise.align.unseen_violation`) within the pairwise limits
-        against EVERY other registered scan. A violation with another scan counts against
-        this one when that scan is cycle-confirmed or passes its own non-conflict checks.
+        tight support from at least two other scans (so not only the single partner pair);
+
+    and, in both cases, both free-space tests
+    (:func:`mvreg.pairwise.align.free_space_violation`,
+    :func:`~mvreg.pairwise.align.unseen_violation`) within the pairwise limits against
+    EVERY other registered scan. A violation with another scan counts against this one
+    unless that scan's own evidence is weaker (cycle > model check > neither): a cycle of
+    consistently wrong pairs (a near-symmetric part) closes, but its scans then put points
+    where the others' sensors saw nothing or in front of what they measured.
 
   - ``"unverified"`` (``reason`` says which evidence is missing or contradicts it);
   - ``"undetermined"``: some degree of freedom of the scan against the model is not
@@ -396,16 +400,24 @@ def verify_scans(
         if problems:
             v.status, v.reason = "unverified", "; ".join(problems)
     # Free-space conflicts: count against s when the other scan stands on its own.
-    stands = {k for k in scans if out[k].status == "verified"}  # before any conflict
+    # Free-space conflicts (every registered scan, cycle-confirmed or not): a conflict
+    # between s and k counts against s unless k's own evidence is weaker (cycle >
+    # passing the model check > neither); two cycle-confirmed scans in conflict both lose
+    # (cycloidal seed 3: a 4-cycle of two right and two flipped pairs closed, and its
+    # halves put points where the other half's sensors saw nothing).
+    strength = {
+        k: 2 if out[k].evidence == "cycle" else 1 if out[k].status == "verified" else 0
+        for k in scans
+    }
     for s in scans:
         v = out[s]
-        if v.status == "undetermined" or v.evidence == "cycle":
+        if v.status == "undetermined":
             continue
-        against = [why for k, why in conflicts.get(s, []) if k in stands]
+        against = [why for k, why in conflicts.get(s, []) if strength[k] >= strength[s]]
         if against:
             v.reason = "; ".join(([v.reason] if v.reason else []) + against)
-            v.status = "unverified"
-        elif v.status == "verified":
+            v.status, v.evidence = "unverified", ""
+        elif v.status == "verified" and not v.evidence:
             v.evidence = "model"
     return out
 

@@ -120,6 +120,7 @@ def test_scan_placed_by_one_wrong_pair_is_unverified(builtin_scans):
     assert reg.report()["verification"]["scans"][target]["status"] == "unverified"
 
 
+@pytest.mark.slow
 def test_symmetric_object_never_exits_0_with_a_guessed_pose(tmp_path):
     """A torus: its rotation about the axis is fixed by no data. Either the result is
     partial (exit 3, the free rotation reported) or every pose is right."""

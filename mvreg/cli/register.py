@@ -133,7 +133,22 @@ def register_folder(
         f"wrote {', '.join(str(p) for p in written)}"
         + (f", {rrd_path}" if rrd_path is not None else "")
     )
-    return 3 if reg.unregistered else 0
+    return 0 if reg.all_registered else 3
+
+
+def _verification_rows(t, reg) -> None:
+    """'verified: N of M' and one row per scan left out, with the reason."""
+    ver = reg.verification or {}
+    if not ver:
+        return
+    n_ok = sum(1 for v in ver.values() if v["status"] == "verified")
+    partial = "" if n_ok == len(reg.scan_names) else " [red](partial result)[/]"
+    t.add_row("verified poses", f"verified: {n_ok} of {len(reg.scan_names)}{partial}")
+    for name, v in ver.items():
+        if v["status"] in ("unverified", "undetermined"):
+            t.add_row(f"[red]{v['status']}[/]", f"{name}: {v['reason']}")
+            if v["degenerate_dof"]:
+                t.add_row("", f"  free: {v['degenerate_dof']}")
 
 
 def summary_table(reg) -> None:
@@ -145,18 +160,22 @@ def summary_table(reg) -> None:
     t.add_row("scans", f"{len(reg.scan_names)} ({len(reg.T_world_scan)} registered)")
     if reg.unregistered:
         t.add_row("[red]unregistered[/]", ", ".join(reg.unregistered))
+    _verification_rows(t, reg)
     accepted = [p for p in reg.pairs if p["accepted"]]
     bad = [p for p in accepted if p["final_weight"] == 0.0]
     t.add_row(
         "pairs", f"{len(reg.pairs)} tried, {len(accepted)} accepted, {len(bad)} down-weighted to 0"
     )
     if c is not None:
-        t.add_row("certified optimum", "yes" if c.certified else "[red]no[/]")
+        t.add_row(
+            "global solve certified optimal for the accepted pairs",
+            "yes" if c.certified else "[red]no[/]",
+        )
     j = getattr(reg, "joint_icp", None)
     if j:
         moved = (
-            f"moved the certified poses by at most {j['max_rotation_change_deg']:.3f} deg, "
-            f"{j['max_point_move_voxels']:.2f} voxels"
+            "moved the poses of the certified solve by at most "
+            f"{j['max_rotation_change_deg']:.3f} deg, {j['max_point_move_voxels']:.2f} voxels"
         )
         t.add_row(
             "joint point-to-plane ICP",
@@ -200,10 +219,10 @@ def demo(
     def _run():
         from data_synth import synthesize_scans
         from mvreg.config import load_config
-        from mvreg.io.writers import prepare_output
+        from mvreg.io.output_folder import OutputFolder
 
         scans_dir, result_dir = out / "scans", out / "result"
-        prepare_output(result_dir, force)  # refuse before spending time
+        OutputFolder(result_dir, force=force, inputs=[scans_dir]).check()  # refuse early
         typer.echo(f"synthesizing {views} scans of the built-in object -> {scans_dir}")
         synth = synthesize_scans(
             "builtin",
@@ -226,8 +245,10 @@ def demo(
             f"{e['translation_median'] / diag * 100:.4f}% / max "
             f"{e['translation_max'] / diag * 100:.4f}% of the object diagonal at the frame "
             f"origins, max {e['translation_at_centroid_max'] / diag * 100:.4f}% at the scan "
-            "centroids; "
-            f"certified: {report['certificate']['certified']}"
+            "centroids; verified: "
+            f"{sum(v['status'] == 'verified' for v in report['verification']['scans'].values())}"
+            f" of {len(report['scans'])} scans; global solve certified optimal for the accepted "
+            f"pairs: {report['certificate']['certified']}"
             + (
                 f" (then moved at most {j['max_rotation_change_deg']:.4f} deg by joint ICP)"
                 if (j := report.get("joint_icp")) and j["accepted"]

@@ -26,6 +26,7 @@ from mvreg.globalstage.joint_icp import joint_icp
 from mvreg.globalstage.refine import prepare_dense_levels, refine_rounds
 from mvreg.globalstage.robust import cycle_check, final_check, robust_rounds
 from mvreg.globalstage.solve import GlobalSolution, TrackSolver
+from mvreg.globalstage.verify import verify_and_resolve
 from mvreg.pairwise import PairResult, PreprocessedScan, Tracks, build_tracks
 
 
@@ -46,6 +47,16 @@ class GlobalOutcome:
     robust_log: list[dict] = field(default_factory=list)
     refine_log: list[dict] = field(default_factory=list)
     joint_icp: dict | None = None
+
+    @property
+    def T_world_scan(self) -> dict[int, np.ndarray]:
+        return {} if self.solution is None else self.solution.T_world_scan
+
+    @property
+    def pair_weight(self) -> dict[tuple[int, int], float]:
+        """{(i, j): final weight} of every pair of the last tracks."""
+        pairs_w = zip(self.tracks.pairs, self.weights, strict=True)
+        return {(int(i), int(j)): float(w) for (i, j), w in pairs_w}
 
 
 @dataclass
@@ -81,7 +92,10 @@ class TrackPlan(Protocol):
 
 
 class GlobalStage:
-    """Runs the global stage with a plan; ``progress`` and ``timed`` come from the run."""
+    """Runs the global stage with a plan; ``progress`` and ``timed`` come from the run.
+
+    :meth:`run_verified` then verifies every scan's pose (:mod:`mvreg.globalstage.verify`)
+    and runs the stage again without the pairs of the scans that fail."""
 
     def __init__(self, plan: TrackPlan):
         self.plan = plan
@@ -125,6 +139,16 @@ class GlobalStage:
                 out.robust_log += [log] if log is not None else []
         timed("refine")
         return out
+
+    def run_verified(self, ctx, pre, results, progress, timed):
+        """:meth:`run`, then verification: (outcome, {scan: ScanVerification} of every
+        scan that had a pose, the dropped scan indices). A dropped scan gets no pose."""
+        out = self.run(ctx, pre, results, progress, timed)
+        progress.stage("verification")
+        return verify_and_resolve(
+            pre, results, out, lambda kept: self.run(ctx, pre, kept, progress, timed),
+            ctx.voxel, ctx.cfg.align,
+        )  # fmt: skip
 
 
 class MultiviewPlan:

@@ -116,6 +116,9 @@ def write_registration(reg, out: str | Path) -> dict[str, Path]:
         reg.T_world_scan,
         world_frame=names[0] if names else None,
         unregistered=reg.unregistered,
+        # Left out: no independent evidence confirms the pose / a degree of freedom is free.
+        unverified=list(getattr(reg, "unverified", [])),
+        undetermined=list(getattr(reg, "undetermined", [])),
         certificate=cert,
         # The certificate is of the last global solve; the joint point-to-plane ICP after
         # it moved the poses by this much (None: it did not run or was not kept).

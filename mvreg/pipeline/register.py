@@ -9,6 +9,7 @@ evaluation; :func:`run_pipeline` is the one list of stages both run.
 
 from __future__ import annotations
 
+import time
 from collections.abc import Sequence
 from pathlib import Path
 
@@ -18,6 +19,7 @@ from mvreg.config import RegisterConfig, load_config
 from mvreg.geometry import transform_points
 from mvreg.globalstage.solve import TrackSolver
 from mvreg.globalstage.stage import GlobalContext, GlobalStage
+from mvreg.globalstage.verify import ScanVerification
 from mvreg.pipeline.load import load_source
 from mvreg.pipeline.result import Registration, pair_table
 from mvreg.pipeline.run import Run
@@ -73,16 +75,26 @@ def run_pipeline(run: Run, mode: Mode, source, names=None, truth=None, result_ty
     ctx = GlobalContext(
         cfg, scales.voxel, run.executor, TrackSolver(cfg.solve, cfg.seed, run.on_iteration), scans
     )
-    out = GlobalStage(graph.plan).run(ctx, pre, graph.results, prog, run.timed)
+    t_verify = time.perf_counter()
+    out, verification, dropped = GlobalStage(graph.plan).run_verified(
+        ctx, pre, graph.results, prog, run.timed
+    )
+    run.timed("verify")  # after the last re-solve (whose stages overwrite their timings)
+    run.timings["verify_with_resolves"] = time.perf_counter() - t_verify
     prog.done()
 
     names_all = [s.name for s in scans]
     sol = out.solution
-    T = {} if sol is None else {names_all[i]: sol.T_world_scan[i] for i in sorted(sol.T_world_scan)}
+    kept = [] if sol is None else [i for i in sorted(sol.T_world_scan) if i not in dropped]
+    T = {names_all[i]: sol.T_world_scan[i] for i in kept}
+    status = scan_status(names_all, T, verification, dropped)
     reg = result_type(
         scan_names=names_all,
         T_world_scan=T,
-        unregistered=[n for n in names_all if n not in T],
+        unregistered=[n for n in names_all if status[n]["status"] == "unregistered"],
+        unverified=[n for n in names_all if status[n]["status"] == "unverified"],
+        undetermined=[n for n in names_all if status[n]["status"] == "undetermined"],
+        verification=status,
         solve=None if sol is None else sol.result,
         pairs=pair_table(out.results, out.tracks, out.weights, graph.columns),
         config=cfg,
@@ -126,3 +138,16 @@ def record_pairs(rec, sol, names: list[str]) -> None:
         pb = transform_points(sol.T_world_scan[int(j)], tr.coords[ob])
         w = float(tr.pair_weights[p]) if len(tr.pair_weights) > p else None
         rec.log_pair_correspondences(names[int(i)], names[int(j)], pa, pb, w)
+
+
+def scan_status(names: list[str], T: dict, verification: dict, dropped) -> dict[str, dict]:
+    """{scan name: verification dict} for every scan: ``verified`` (in ``T``),
+    ``unverified`` / ``undetermined`` (dropped by verification, with the reason) or
+    ``unregistered`` (no accepted pair connects it to the others)."""
+    out = {}
+    for k, n in enumerate(names):
+        v = verification.get(k)
+        if v is None or (n not in T and k not in dropped):
+            v = ScanVerification("unregistered", "not connected to the others by accepted pairs")
+        out[n] = v.to_dict()
+    return out

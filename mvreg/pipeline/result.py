@@ -8,6 +8,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from mvreg.config import RegisterConfig
+from mvreg.globalstage.verify import NOTE as VERIFICATION_NOTE
 from mvreg.io.loaders import Scan
 from mvreg.scales import Scales
 
@@ -17,10 +18,13 @@ class Registration:
     """The result of ``register``.
 
     T_world_scan: {scan name: (4, 4) world_from_scan} for every registered scan; the world
-    frame is the first registered scan. ``unregistered`` lists the scans that could not be
-    connected to the rest (never given a made-up pose). ``solve`` is the last global
-    solve (its certificate proves that solve optimal for the accepted pairs, not the
-    pairs right). ``scales``: the lengths of the run (voxel sizes, noise).
+    frame is the first registered scan; every pose in it is verified
+    (:mod:`mvreg.globalstage.verify`). ``unregistered`` lists the scans that could not be
+    connected to the rest (never given a made-up pose); ``unverified`` and
+    ``undetermined`` those left out because no independent evidence confirms their pose
+    or a degree of freedom of it is not fixed by the data (``verification`` says why, per
+    scan). ``solve`` is the last global solve: its certificate proves that solve optimal
+    for the accepted pairs, not the pairs right. ``scales``: the lengths of the run.
     """
 
     scan_names: list[str]
@@ -39,6 +43,9 @@ class Registration:
     scans: list[Scan] = field(default_factory=list, repr=False)
     source: str | None = None
     skipped_files: list[dict] = field(default_factory=list)  # folder entries not read
+    unverified: list[str] = field(default_factory=list)  # left out: pose not confirmed
+    undetermined: list[str] = field(default_factory=list)  # left out: a free DOF
+    verification: dict = field(default_factory=dict)  # {scan: status, reason, evidence}
 
     @property
     def voxel_size(self) -> float:
@@ -46,7 +53,8 @@ class Registration:
 
     @property
     def all_registered(self) -> bool:
-        return not self.unregistered
+        """Every scan placed and its pose verified (what exit code 0 means)."""
+        return not (self.unregistered or self.unverified or self.undetermined)
 
     def __repr__(self) -> str:
         c = self.solve.certificate if self.solve is not None else None
@@ -72,6 +80,9 @@ class Registration:
             "skipped_files": self.skipped_files,
             "registered": list(self.T_world_scan),
             "unregistered": self.unregistered,
+            "unverified": self.unverified,
+            "undetermined": self.undetermined,
+            "verification": {"scans": self.verification, "note": VERIFICATION_NOTE},
             "timings_s": self.timings,
             "pairs": self.pairs,
             "bad_pairs": [p for p in self.pairs if p["accepted"] and p["final_weight"] == 0.0],

@@ -10,8 +10,8 @@ import pytest
 from typer.testing import CliRunner
 
 from mvreg.cli import app
-from mvreg.io.poses import read_poses_json
 from mvreg.globalstage.verify import normal_matrix, on_cycle
+from mvreg.io.poses import read_poses_json
 
 runner = CliRunner()
 

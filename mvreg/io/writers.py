@@ -1,9 +1,8 @@
 """Output folder of ``register``: poses (JSON, TUM, KITTI), merged cloud, report.
 
 Every file is written atomically (temporary file, then rename): an interrupted run never
-leaves a half-written file. ``prepare_output`` refuses a folder that already holds
-results unless ``force``; :class:`mvreg.io.output_folder.OutputFolder` makes a whole run's
-outputs one set (written aside, swapped in).
+leaves a half-written file; :class:`mvreg.io.output_folder.OutputFolder` makes a whole
+run's outputs one set (written aside, swapped in) and refuses folders that hold results.
 """
 
 from __future__ import annotations
@@ -12,25 +11,9 @@ from pathlib import Path
 
 import numpy as np
 
-from mvreg.errors import OutputExistsError
 from mvreg.geometry import transform_points
 from mvreg.io.atomic import atomic_path, atomic_write_json
-from mvreg.io.output_folder import RESULT_FILES
 from mvreg.io.poses import write_poses_json, write_poses_kitti, write_poses_tum
-
-
-def prepare_output(out: str | Path, force: bool) -> Path:
-    """Create ``out`` (if needed); refuse when it already holds results and not ``force``."""
-    out = Path(out)
-    if out.exists() and not out.is_dir():
-        raise OutputExistsError(f"{out}: exists and is not a folder")
-    existing = [f for f in RESULT_FILES if (out / f).exists()]
-    if existing and not force:
-        raise OutputExistsError(
-            f"{out}: already holds results ({', '.join(existing)}); use --force to overwrite"
-        )
-    out.mkdir(parents=True, exist_ok=True)
-    return out
 
 
 def merged_cloud(reg, voxel_size: float | None = None):

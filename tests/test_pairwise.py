@@ -526,3 +526,15 @@ def test_cycle_check_sets_aside_the_pair_the_geometry_contradicts(synthetic_pre)
     assert [(results[k].i, results[k].j) for k, _ in out] == [(0, 1)]
     info = out[0][1]
     assert info["best_cycle_support"] > max(100.0, info["own_support"])
+
+
+def test_absurdly_small_given_voxel_is_refused_naming_the_value():
+    """Issue 16: `--voxel-size 1e-7` ran 26 s and registered nothing; now refused at once."""
+    from mvreg.errors import ConfigError
+    from mvreg.pairwise import derive_scales
+
+    rng = np.random.default_rng(0)
+    scans = [Scan(name=f"s{k}", path=None, points=rng.uniform(0, 1, (2000, 3))) for k in range(2)]
+    with pytest.raises(ConfigError, match="voxel_size 1e-07 is far below"):
+        derive_scales(scans, PreprocessConfig(voxel_size=1e-7))
+    assert derive_scales(scans, PreprocessConfig(voxel_size=0.05)).voxel == 0.05

@@ -229,6 +229,25 @@ def check_voxel_size(voxel_size: float) -> float:
     return v
 
 
+# A given voxel below this share of the scans' median point spacing downsamples nothing and
+# leaves each FPFH neighbourhood a handful of points: refused rather than run for nothing.
+MIN_VOXEL_SPACINGS = 0.1
+
+
+def check_given_voxel(voxel: float, scans: Sequence[Scan], executor: Executor | int = 2):
+    """ConfigError naming the value when a given voxel is absurd for the data: far below
+    the scans' median point spacing (every point its own voxel)."""
+    spacing = float(
+        np.median(make_executor(executor).map(median_spacing, [s.points for s in scans]))
+    )
+    if spacing > 0 and voxel < MIN_VOXEL_SPACINGS * spacing:
+        raise ConfigError(
+            f"voxel_size {voxel:.3g} is far below the scans' median point spacing "
+            f"{spacing:.3g} (data units): use at least {MIN_VOXEL_SPACINGS * spacing:.3g}, "
+            "or leave it out to derive it from the data"
+        )
+
+
 def derive_scales(
     scans: Sequence[Scan], cfg: PreprocessConfig | None = None, executor: Executor | int = 2
 ) -> Scales:
@@ -238,6 +257,8 @@ def derive_scales(
     :func:`with_noise`. ConfigError for a voxel that is not finite and > 0."""
     cfg = cfg or PreprocessConfig()
     voxel = check_voxel_size(derive_voxel_size(scans, cfg, executor))
+    if cfg.voxel_size is not None and scans:
+        check_given_voxel(voxel, scans, executor)
     return Scales(
         voxel=voxel,
         fine_voxel=cfg.fine_voxel_ratio * voxel,

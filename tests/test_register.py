@@ -274,3 +274,19 @@ def test_translation_error_at_the_centroid_ignores_where_the_frame_origin_is():
     # 3 * 0.3 deg in radians = 0.0157 at the origin, shared with the others by the gauge
     assert at_origin[3] > 0.01
     assert at_centroid[3] < 0.3 * at_origin[3]
+
+
+def test_a_far_stray_point_is_dropped_at_load():
+    """Issue 16: one stray point per scan at 1e9 broke the run (exit 4, Open3D's voxel grid
+    too large); the load stage drops far strays and counts them, and leaves scans without
+    any untouched (same object)."""
+    from mvreg.io.loaders import Scan
+    from mvreg.pipeline.load import drop_far_strays
+
+    rng = np.random.default_rng(0)
+    pts = rng.normal(size=(500, 3))
+    scan = Scan(name="s", path=Path("s.npy"), points=np.vstack([pts, [[1e9, 1e9, 1e9]]]))
+    out = drop_far_strays(scan, 100)
+    assert out.num_dropped_far == 1 and np.array_equal(out.points, pts)
+    clean = Scan(name="c", path=Path("c.npy"), points=pts)
+    assert drop_far_strays(clean, 100) is clean

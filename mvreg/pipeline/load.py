@@ -6,12 +6,12 @@ folder, used only to evaluate). Raises InputError / ScanFileError naming the cul
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 
 import numpy as np
 
-from mvreg.errors import InputError
+from mvreg.errors import InputError, ScanFileError
 from mvreg.io.loaders import Scan, load_scan_file, scan_folder
 from mvreg.io.poses import read_poses_json
 
@@ -37,9 +37,37 @@ def load_source(
         out = _load_folder(Path(source), min_points, max_points, truth, prog)
     else:
         out = Loaded(_from_arrays(source, names, min_points), None, truth)
+    out.scans = [drop_far_strays(s, min_points) for s in out.scans]
     if len(out.scans) < 2:
         raise InputError(f"{source}: {what} needs at least 2 scans, found {len(out.scans)}")
     return out
+
+
+# A point this many times further from its scan's median point than the scan's median
+# distance from it is a stray (a glitch at 1e9): no scan spans four orders of magnitude.
+FAR_STRAY_FACTOR = 1e4
+
+
+def drop_far_strays(scan: Scan, min_points: int) -> Scan:
+    """``scan`` without points further than ``FAR_STRAY_FACTOR`` times its median radius
+    from its median point (counted in ``num_dropped_far``); the same object when none is.
+    One such point otherwise makes the voxel grids of every later stage impossibly large."""
+    centre = np.median(scan.points, axis=0)
+    r = np.linalg.norm(scan.points - centre, axis=1)
+    radius = float(np.median(r))
+    far = r > FAR_STRAY_FACTOR * max(radius, np.finfo(float).tiny)
+    if not np.any(far):
+        return scan
+    keep = ~far
+    if keep.sum() < min_points:
+        raise ScanFileError(scan.path, f"only {int(keep.sum())} points away from far strays")
+    return replace(
+        scan,
+        points=scan.points[keep],
+        normals=None if scan.normals is None else scan.normals[keep],
+        colors=None if scan.colors is None else scan.colors[keep],
+        num_dropped_far=int(far.sum()),
+    )
 
 
 def _load_folder(folder: Path, min_points, max_points, truth, prog) -> Loaded:

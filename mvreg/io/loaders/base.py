@@ -44,6 +44,8 @@ class Scan:
             records one (PCD ``VIEWPOINT`` other than the default), else None.
         T_world_scan_hint: (4, 4) float64 scan-to-world pose stored in the file (E57
             scanner poses), a possible initial guess; None when the file has none.
+        num_dropped_far: points dropped by the load stage as far strays
+            (:func:`mvreg.pipeline.load.drop_far_strays`).
     """
 
     name: str
@@ -54,6 +56,7 @@ class Scan:
     num_dropped_nonfinite: int = 0
     sensor_origin: np.ndarray | None = field(default=None)
     T_world_scan_hint: np.ndarray | None = field(default=None, repr=False)
+    num_dropped_far: int = 0
 
     @property
     def num_points(self) -> int:

@@ -45,10 +45,12 @@ Contract (pure functions on arrays, preprocessed scans and pair results; no I/O)
     eigenvector raises the rms point-to-plane residual by ``sqrt(lambda_min)`` voxels; when
     that is below the scans' noise (``lambda_min < (noise / voxel)**2``), the direction is
     a candidate, and it is undetermined when point-to-plane ICP against the model, started
-    ``probe_voxels`` along it, neither returns (within ``agree_voxels``) nor lands on a
-    worse fit (overlap share at least ``1 - 1/sqrt(n_tight)``-ish of the original, see
-    :func:`_equally_good`, residual within the acceptance rule): the data cannot tell the
-    two poses apart.
+    ``probe_voxels`` (3) feature voxels along it, does not come back (median point motion
+    above ``agree_voxels``) and lands on a fit as good (:func:`_equally_good`: residual
+    within the acceptance rule and at most 1.25x the final one's plus its sampling spread,
+    overlap share at least 0.9x the final one's minus three binomial standard errors):
+    the data cannot tell the two poses apart. Only continuous freedoms are found this way;
+    a discrete symmetry (a knot turned 120 or 180 deg onto itself) is not detected.
 
 Every threshold comes from the data (feature voxel, the scans' noise estimates, point
 counts) or from the pairwise acceptance rule already in the configuration; none is fitted

@@ -334,7 +334,6 @@ def verify_scans(
         agree_voxels: a pair agrees with the final poses within this many feature voxels.
     """
     acfg = align_cfg or AlignConfig()
-    names = [p.name for p in pre]
     scans = sorted(T_world_scan)
     if not scans:
         return {}
@@ -343,92 +342,107 @@ def verify_scans(
     out: dict[int, ScanVerification] = {}
     conflicts: dict[int, list[tuple[int, str]]] = {}
     for s in scans:
-        v = ScanVerification(status="verified", agreeing_pairs=[names[k] for k in sorted(graph[s])])
-        out[s] = v
-        others = [k for k in scans if k != s]
-        T = T_world_scan[s]
-        pts = transform_points(T, pre[s].fine_points)
-        nrm = pre[s].fine_normals @ T[:3, :3].T
-        model = _model(pre, T_world_scan, others)
-        if model is None:
-            v.status, v.reason = "unverified", "no other registered scan to check it against"
+        out[s], conflicts[s] = _check_scan(
+            s, pre, T_world_scan, graph, cycle, voxel, acfg, agree_voxels
+        )
+    _settle_conflicts(out, conflicts, scans)
+    return out
+
+
+def _check_scan(s, pre, T_world_scan, graph, cycle, voxel, acfg, agree_voxels):
+    """(ScanVerification of scan ``s`` before conflicts are settled, its conflicts)."""
+    names = [p.name for p in pre]
+    scans = sorted(T_world_scan)
+    v = ScanVerification(status="verified", agreeing_pairs=[names[k] for k in sorted(graph[s])])
+    others = [k for k in scans if k != s]
+    T = T_world_scan[s]
+    pts = transform_points(T, pre[s].fine_points)
+    nrm = pre[s].fine_normals @ T[:3, :3].T
+    model = _model(pre, T_world_scan, others)
+    if model is None:
+        v.status, v.reason = "unverified", "no other registered scan to check it against"
+        return v, []
+    overlap, ratio, tight, idx, noise = _fit(model, pts, nrm, pre[s].noise, voxel, acfg)
+    v.model_overlap, v.model_residual_ratio = overlap, ratio
+    owners, counts = np.unique(model.owner[idx[tight]], return_counts=True)
+    support = [int(k) for k, n in zip(owners, counts, strict=True) if n >= acfg.min_correspondences]
+    v.supporting_scans = [names[k] for k in support]
+    conflicts = _free_space(v, s, others, support, pre, T_world_scan, names, acfg)
+    dof = degenerate_direction(model, pts, nrm, tight, idx, noise, voxel, acfg, agree_voxels)
+    if dof is not None:
+        v.status, v.degenerate_dof = "undetermined", dof
+        v.reason = f"the other scans do not fix its {dof.split(' ')[0]}"
+        return v, conflicts
+    if s in cycle:
+        v.evidence = "cycle"
+        return v, conflicts
+    problems = _model_problems(overlap, ratio, support, graph[s], v, names, acfg)
+    if problems:
+        v.status, v.reason = "unverified", "; ".join(problems)
+    return v, conflicts
+
+
+def _free_space(v, s, others, support, pre, T_world_scan, names, acfg) -> list[tuple[int, str]]:
+    """Both free-space tests of scan ``s`` against every other scan (the largest values go
+    into ``v``); the conflicts, with scans ``s`` shares close matches with only."""
+    T = T_world_scan[s]
+    fs_all, un_all, conflicts = [], [], []
+    for k in others:
+        T_k_s = invert_transform(T_world_scan[k]) @ T
+        fs = free_space_violation(pre[k], pre[s], T_k_s, acfg)
+        un = unseen_violation(pre[k], pre[s], T_k_s, acfg)
+        fs_all.append(fs)
+        un_all.append(un)
+        if k not in support:
+            # Reported, but a conflict only with a scan that shares surface with this one
+            # (why: docs/design/verification.md).
             continue
-        overlap, ratio, tight, idx, noise = _fit(model, pts, nrm, pre[s].noise, voxel, acfg)
-        v.model_overlap, v.model_residual_ratio = overlap, ratio
-        owners, counts = np.unique(model.owner[idx[tight]], return_counts=True)
-        support = [
-            int(k) for k, n in zip(owners, counts, strict=True) if n >= acfg.min_correspondences
-        ]
-        v.supporting_scans = [names[k] for k in support]
-        fs_all, un_all = [], []
-        conflicts[s] = []
-        for k in others:
-            T_k_s = invert_transform(T_world_scan[k]) @ T
-            fs = free_space_violation(pre[k], pre[s], T_k_s, acfg)
-            un = unseen_violation(pre[k], pre[s], T_k_s, acfg)
-            fs_all.append(fs)
-            un_all.append(un)
-            if k not in support:
-                # Reported, but a conflict only with a scan that shares surface with this
-                # one: between views that share none both tests flagged right poses
-                # (noise-free fandisk seed 0: unseen 0.48 between right scans of opposite
-                # sides; teapot seed 0: 0.025 in free space between two right scans).
-                continue
-            # The pairwise limits loosened as for a pose not refined on that pair
-            # (coarse_gate_slack): no ICP of this scan on k has tightened it (teapot seed
-            # 0: 0.007 between two right scans, limit 0.005).
-            if fs > min(1.0, acfg.max_free_space_violation * acfg.coarse_gate_slack):
-                conflicts[s].append((k, f"{fs:.3f} of the points in {names[k]}'s free space"))
-            if un > min(1.0, acfg.max_unseen_violation * acfg.coarse_gate_slack):
-                conflicts[s].append((k, f"{un:.3f} of the points where {names[k]} saw nothing"))
-        v.free_space_violation = float(np.nanmax(fs_all)) if np.any(np.isfinite(fs_all)) else None
-        v.unseen_violation = float(np.nanmax(un_all)) if np.any(np.isfinite(un_all)) else None
-        dof = degenerate_direction(model, pts, nrm, tight, idx, noise, voxel, acfg, agree_voxels)
-        if dof is not None:
-            v.status, v.degenerate_dof = "undetermined", dof
-            v.reason = f"the other scans do not fix its {dof.split(' ')[0]}"
-            continue
-        if s in cycle:
-            v.evidence = "cycle"
-            continue
-        problems = []
-        if overlap < acfg.min_overlap_ratio:
-            problems.append(
-                f"overlap with the other scans {overlap:.2f} < {acfg.min_overlap_ratio}"
+        # The pairwise limits loosened as for a pose not refined on that pair
+        # (coarse_gate_slack): no ICP of this scan on k has tightened it.
+        if fs > min(1.0, acfg.max_free_space_violation * acfg.coarse_gate_slack):
+            conflicts.append((k, f"{fs:.3f} of the points in {names[k]}'s free space"))
+        if un > min(1.0, acfg.max_unseen_violation * acfg.coarse_gate_slack):
+            conflicts.append((k, f"{un:.3f} of the points where {names[k]} saw nothing"))
+    v.free_space_violation = float(np.nanmax(fs_all)) if np.any(np.isfinite(fs_all)) else None
+    v.unseen_violation = float(np.nanmax(un_all)) if np.any(np.isfinite(un_all)) else None
+    return conflicts
+
+
+def _model_problems(overlap, ratio, support, agreeing, v, names, acfg) -> list[str]:
+    """Why a scan not on a cycle fails the scan-to-model check (empty: it passes)."""
+    problems = []
+    if overlap < acfg.min_overlap_ratio:
+        problems.append(f"overlap with the other scans {overlap:.2f} < {acfg.min_overlap_ratio}")
+    if not ratio <= acfg.max_residual_ratio:
+        problems.append(
+            f"residual against the other scans {ratio:.1f}x the noise "
+            f"(limit {acfg.max_residual_ratio})"
+        )
+    if len(support) < 2:
+        problems.append(
+            "supported by "
+            + (f"only {names[support[0]]}" if support else "no other scan")
+            + (
+                f" (its single pair with {v.agreeing_pairs[0]} is not confirmed by a cycle)"
+                if len(agreeing) == 1
+                else ""
             )
-        if not ratio <= acfg.max_residual_ratio:
-            problems.append(
-                f"residual against the other scans {ratio:.1f}x the noise "
-                f"(limit {acfg.max_residual_ratio})"
-            )
-        if len(support) < 2:
-            problems.append(
-                "supported by "
-                + (f"only {names[support[0]]}" if support else "no other scan")
-                + (
-                    f" (its single pair with {v.agreeing_pairs[0]} is not confirmed by a cycle)"
-                    if len(graph[s]) == 1
-                    else ""
-                )
-            )
-        if problems:
-            v.status, v.reason = "unverified", "; ".join(problems)
-    # Free-space conflicts: a conflict between s and k counts against s when k's own
-    # evidence is stronger (cycle > passing the model check > neither); two scans that
-    # each pass the model check do not overrule each other.
-    # Tried: letting two cycle-confirmed scans in conflict both lose. It caught a
-    # closed 4-cycle of two right and two flipped pairs (cycloidal seed 3, halves 147 deg
-    # apart, unseen 0.047) but also dropped two right scans of noise-free fandisk (seed 0,
-    # unseen 0.104 between them), so cycle evidence stands.
+        )
+    return problems
+
+
+def _settle_conflicts(out, conflicts, scans) -> None:
+    """A free-space conflict between s and k counts against s when k's own evidence is
+    stronger (cycle > passing the model check > neither); two scans that each pass the
+    model check do not overrule each other, and cycle evidence stands (why:
+    docs/design/verification.md)."""
     strength = {
         k: 2 if out[k].evidence == "cycle" else 1 if out[k].status == "verified" else 0
         for k in scans
     }
     for s in scans:
         v = out[s]
-        if v.status == "undetermined":
-            continue
-        if strength[s] == 2:
+        if v.status == "undetermined" or strength[s] == 2:
             continue
         against = [why for k, why in conflicts.get(s, []) if strength[k] > strength[s]]
         if against:
@@ -436,7 +450,6 @@ def verify_scans(
             v.status, v.evidence = "unverified", ""
         elif v.status == "verified" and not v.evidence:
             v.evidence = "model"
-    return out
 
 
 # ---------------------------------------------------------------------------- pipeline loop

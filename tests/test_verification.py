@@ -157,3 +157,16 @@ def test_real_bunny_all_verified(shared_data: Path):
     assert reg.all_registered, reg.verification
     assert len(reg.T_world_scan) == 10
     assert all(v["status"] == "verified" for v in reg.verification.values())
+
+
+def test_main_block_leaves_out_groups_hanging_on_one_pair():
+    """A group of scans that agree with each other but join the rest by one pair (a bridge)
+    is outside the main block: its place relative to the rest rests on that one pair."""
+    from mvreg.globalstage.verify import main_block
+
+    two_triangles = {0: {1, 2}, 1: {0, 2}, 2: {0, 1, 3}, 3: {2, 4, 5}, 4: {3, 5}, 5: {3, 4}}
+    assert main_block(two_triangles) == {0, 1, 2}  # a tie: the block with the lowest index
+    square_and_triangle = {0: {1, 3}, 1: {0, 2}, 2: {1, 3}, 3: {0, 2, 4}, 4: {3, 5, 6}}
+    square_and_triangle |= {5: {4, 6}, 6: {4, 5}}
+    assert main_block(square_and_triangle) == {0, 1, 2, 3}
+    assert main_block({0: {1}, 1: {0, 2}, 2: {1}}) == set()  # a tree has no block

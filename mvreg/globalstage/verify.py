@@ -160,6 +160,58 @@ def on_cycle(graph: dict[int, set[int]]) -> set[int]:
     return out
 
 
+def main_block(graph: dict[int, set[int]]) -> set[int]:
+    """The largest 2-edge-connected block of the graph (ties: the one holding the lowest
+    scan index): the scans that stay connected when any one pair is removed. A group of
+    scans that agree with each other but hang on the rest by a single pair (a bridge) is
+    outside it: the group's place relative to the rest rests on that one pair."""
+    index: dict[int, int] = {}
+    low: dict[int, int] = {}
+    bridges: set[frozenset] = set()
+    counter = 0
+    for root in sorted(graph):
+        if root in index:
+            continue
+        index[root] = low[root] = counter
+        counter += 1
+        stack = [(root, None, iter(sorted(graph[root])))]
+        while stack:
+            v, parent, it = stack[-1]
+            w = next(it, None)
+            if w is None:
+                stack.pop()
+                if parent is not None:
+                    low[parent] = min(low[parent], low[v])
+                    if low[v] > index[parent]:
+                        bridges.add(frozenset((parent, v)))
+                continue
+            if w == parent:
+                continue
+            if w in index:
+                low[v] = min(low[v], index[w])
+            else:
+                index[w] = low[w] = counter
+                counter += 1
+                stack.append((w, v, iter(sorted(graph[w]))))
+    seen: set[int] = set()
+    blocks = []
+    for s in sorted(graph):
+        if s in seen:
+            continue
+        block, todo = {s}, [s]
+        seen.add(s)
+        while todo:
+            a = todo.pop()
+            for b in graph[a]:
+                if b not in seen and frozenset((a, b)) not in bridges:
+                    seen.add(b)
+                    block.add(b)
+                    todo.append(b)
+        blocks.append(block)
+    best = max(blocks, key=lambda b: (len(b), -min(b)), default=set())
+    return best if len(best) >= 3 else set()
+
+
 # ---------------------------------------------------------------------------- evidence (b)
 
 
@@ -338,19 +390,24 @@ def verify_scans(
     if not scans:
         return {}
     graph = agreeing_graph(pre, results, pair_weight, T_world_scan, voxel, agree_voxels)
-    cycle = on_cycle(graph)
+    main = main_block(graph)
+    cycle = on_cycle(graph) & main
     out: dict[int, ScanVerification] = {}
     conflicts: dict[int, list[tuple[int, str]]] = {}
     for s in scans:
         out[s], conflicts[s] = _check_scan(
-            s, pre, T_world_scan, graph, cycle, voxel, acfg, agree_voxels
+            s, pre, T_world_scan, graph, cycle, main, voxel, acfg, agree_voxels
         )
     _settle_conflicts(out, conflicts, scans)
     return out
 
 
-def _check_scan(s, pre, T_world_scan, graph, cycle, voxel, acfg, agree_voxels):
-    """(ScanVerification of scan ``s`` before conflicts are settled, its conflicts)."""
+def _check_scan(s, pre, T_world_scan, graph, cycle, main, voxel, acfg, agree_voxels):
+    """(ScanVerification of scan ``s`` before conflicts are settled, its conflicts).
+
+    Outside the main block of agreeing pairs (:func:`main_block`), only support from scans
+    of the main block counts: a group that agrees with itself cannot confirm itself. (With
+    no block at all -- the agreeing pairs form a tree -- any two scans' support counts.)"""
     names = [p.name for p in pre]
     scans = sorted(T_world_scan)
     v = ScanVerification(status="verified", agreeing_pairs=[names[k] for k in sorted(graph[s])])
@@ -376,6 +433,8 @@ def _check_scan(s, pre, T_world_scan, graph, cycle, voxel, acfg, agree_voxels):
     if s in cycle:
         v.evidence = "cycle"
         return v, conflicts
+    if main and s not in main:
+        support = [k for k in support if k in main]
     problems = _model_problems(overlap, ratio, support, graph[s], v, names, acfg)
     if problems:
         v.status, v.reason = "unverified", "; ".join(problems)

@@ -107,6 +107,12 @@ def overlap_residual(
         total += len(q)
         all_d.append(best[ok])
         per_scan.append(float(np.median(best[ok])) if np.any(ok) else None)
+    return residual_summary(all_d, total, per_scan, max_distance)
+
+
+def residual_summary(all_d: list, total: int, per_scan: list, max_distance: float) -> dict:
+    """The overlap-residual dict from the matched distances of each scan: median, mean,
+    the share of the ``total`` query points that found a match, and per-scan medians."""
     d = np.concatenate(all_d) if all_d else np.zeros(0)
     return {
         "median": float(np.median(d)) if d.size else None,

@@ -8,7 +8,7 @@ import numpy as np
 from scipy.spatial import cKDTree
 
 from mvreg.geometry import invert_transform, rotation_angle_deg, transform_points
-from mvreg.metrics import pose_errors
+from mvreg.metrics import pose_errors, residual_summary
 from mvreg.pipeline.evaluate import truth_errors
 from mvreg.sequence.odometry import kiss_version
 
@@ -60,13 +60,8 @@ def graph_overlap(reg, idx, results, thresh: float, max_points: int = 2000) -> d
         total += len(q)
         all_d.append(d[ok])
         per_scan.append(float(np.median(d[ok])) if np.any(ok) else None)
-    d = np.concatenate(all_d) if all_d else np.zeros(0)
     return {
-        "median": float(np.median(d)) if d.size else None,
-        "mean": float(np.mean(d)) if d.size else None,
-        "overlap_fraction": float(d.size / max(total, 1)),
-        "max_distance": float(thresh),
-        "per_scan_median": per_scan,
+        **residual_summary(all_d, total, per_scan, thresh),
         "compared_with": "partners in accepted pairs",
     }
 

@@ -192,6 +192,36 @@ def test_sigterm_exits_143_and_discards_the_run(tmp_path):
     assert contents(out) == before and leftovers(tmp_path) == []
 
 
+@pytest.mark.parametrize("sig,code", [(signal.SIGTERM, 143), (signal.SIGINT, 130)])
+def test_a_signal_swallowed_into_another_error_still_exits_as_the_signal(tmp_path, sig, code):
+    # A signal landing in an extension's import becomes an ImportError, which a loader
+    # then wraps into a file error (CI saw exit 2, "cannot read file", for a SIGTERM).
+    from mvreg.errors import MvregError
+
+    out = tmp_path / "out"
+    before = old_set(out)
+
+    def body():
+        with OutputFolder(out, force=True) as staging:
+            (staging / "poses.json").write_text("new")
+            try:
+                os.kill(os.getpid(), sig)
+            except BaseException as e:  # what pybind11's module init does with it
+                raise ImportError("initialization failed") from e
+            raise AssertionError("not reached")
+
+    def loader():
+        try:
+            body()
+        except ImportError as e:
+            raise MvregError(f"scan.ply: cannot read file ({e})") from e
+
+    with pytest.raises(typer.Exit) as info:
+        run_guarded(loader)
+    assert info.value.exit_code == code
+    assert contents(out) == before and leftovers(tmp_path) == []
+
+
 KILLED = textwrap.dedent(
     """
     import sys, time

@@ -36,15 +36,36 @@ class Terminated(BaseException):
     """Raised in the main thread by the SIGTERM handler of `run_guarded`."""
 
 
-def _on_sigterm(signum, frame):
-    raise Terminated()
+# Signals received during the guarded call. An extension module being imported when
+# the signal lands turns the handler's exception into an ImportError (pybind11
+# "initialization failed"), which a loader may wrap into a file error: the record
+# here, not the exception type, decides the exit code.
+_received: list[int] = []
+
+
+def _on_signal(signum, frame):
+    import signal
+
+    _received.append(signum)
+    raise Terminated() if signum == signal.SIGTERM else KeyboardInterrupt()
+
+
+def _signal_exit() -> typer.Exit:
+    import signal
+
+    if _received[0] == signal.SIGTERM:
+        typer.echo("mvreg: terminated (SIGTERM); this run's outputs were discarded", err=True)
+        return typer.Exit(143)
+    typer.echo("mvreg: interrupted", err=True)
+    return typer.Exit(130)
 
 
 def run_guarded(fn, *args, **kwargs):
     """Call fn; turn MvregError (and, without --debug, anything else) into an exit code.
 
     SIGINT exits 130 and SIGTERM 143, each with a message; both unwind the call (so an
-    output folder being written is discarded, the previous one kept).
+    output folder being written is discarded, the previous one kept), whatever
+    exception the unwinding ends up as.
     """
     import signal
     import threading
@@ -52,24 +73,26 @@ def run_guarded(fn, *args, **kwargs):
     from mvreg.errors import MvregError
 
     main = threading.current_thread() is threading.main_thread()
-    previous = signal.signal(signal.SIGTERM, _on_sigterm) if main else None
+    handled = (signal.SIGTERM, signal.SIGINT)
+    previous = {s: signal.signal(s, _on_signal) for s in handled} if main else {}
+    _received.clear()
     try:
         return fn(*args, **kwargs)
     except typer.Exit:
+        if _received:
+            raise _signal_exit() from None
         raise
+    except (KeyboardInterrupt, Terminated):
+        if not _received:  # raised by the code itself, not by a signal
+            _received.append(signal.SIGINT)
+        raise _signal_exit() from None
     except MvregError as e:
-        raise fail(e) from None
-    except KeyboardInterrupt:
-        typer.echo("mvreg: interrupted", err=True)
-        raise typer.Exit(130) from None
-    except Terminated:
-        typer.echo("mvreg: terminated (SIGTERM); this run's outputs were discarded", err=True)
-        raise typer.Exit(143) from None
+        raise (_signal_exit() if _received else fail(e)) from None
     except Exception as e:  # noqa: BLE001 - last resort: one line, unless --debug
-        raise fail(e) from None
+        raise (_signal_exit() if _received else fail(e)) from None
     finally:
-        if main:
-            signal.signal(signal.SIGTERM, signal.SIG_DFL if previous is None else previous)
+        for s, handler in previous.items():
+            signal.signal(s, signal.SIG_DFL if handler is None else handler)
 
 
 def parse_sets(items: list[str] | None) -> dict:

@@ -177,11 +177,9 @@ def _garbage_cases() -> list[Case]:
 
 def _content_cases() -> list[Case]:
     dup = (ply_header(400) + "1 2 3\n4 5 6\n" * 200).encode()
-    few = ply_with(ascii_rows(20))
     nan = ("nan nan nan\n" * 300).encode()
     return [
         _scan_case("duplicates-only", "dup.ply", dup, "400 points but only 2 distinct"),
-        _scan_case("too-few", "few.ply", few, "only 20 valid points"),
         _scan_case("nan-only", "nan.xyz", nan, "NaN"),
         _scan_case("no-vertices", "none.ply", ply_header(0).encode(), "no vertices"),
         _scan_case("no-end-header", "h.ply", b"ply\nformat ascii 1.0\n" * 3, "corrupt header"),

@@ -128,6 +128,9 @@ def register_folder(
             os.chmod(rrd_path, 0o666 & ~umask)
     for s in reg.skipped_files:
         typer.echo(f"mvreg: warning: {s['file']}: not read ({s['reason']})", err=True)
+    for s in reg.rejected_scans:
+        scan = "" if s["scan"] == s["file"] else f" (scan {s['scan']})"
+        typer.echo(f"mvreg: warning: {s['file']}{scan}: not registered: {s['reason']}", err=True)
     summary_table(reg)
     typer.echo(
         f"wrote {', '.join(str(p) for p in written)}"
@@ -142,8 +145,9 @@ def _verification_rows(t, reg) -> None:
     if not ver:
         return
     n_ok = sum(1 for v in ver.values() if v["status"] == "verified")
-    partial = "" if n_ok == len(reg.scan_names) else " [red](partial result)[/]"
-    t.add_row("verified poses", f"verified: {n_ok} of {len(reg.scan_names)}{partial}")
+    n_all = len(reg.all_scan_names)
+    partial = "" if n_ok == n_all else " [red](partial result)[/]"
+    t.add_row("verified poses", f"verified: {n_ok} of {n_all}{partial}")
     for name, v in ver.items():
         if v["status"] in ("unverified", "undetermined"):
             t.add_row(f"[red]{v['status']}[/]", f"{name}: {v['reason']}")
@@ -157,9 +161,17 @@ def summary_table(reg) -> None:
 
     c = reg.solve.certificate if reg.solve is not None else None
     t = Table(title="mvreg register", show_header=False)
-    t.add_row("scans", f"{len(reg.scan_names)} ({len(reg.T_world_scan)} registered)")
+    t.add_row("scans", f"{len(reg.all_scan_names)} ({len(reg.T_world_scan)} registered)")
     if reg.unregistered:
         t.add_row("[red]unregistered[/]", ", ".join(reg.unregistered))
+    for s in reg.rejected_scans:
+        t.add_row("[red]left out[/]", f"{s['scan']}: {s['reason']}")
+    if reg.local_frame_offset is not None:
+        offset = ", ".join(f"{x:.10g}" for x in reg.local_frame_offset)
+        t.add_row(
+            "local frame offset",
+            f"({offset}) subtracted while registering; outputs in the files' frame",
+        )
     _verification_rows(t, reg)
     accepted = [p for p in reg.pairs if p["accepted"]]
     bad = [p for p in accepted if p["final_weight"] == 0.0]

@@ -41,6 +41,20 @@ def write_poses_json(path: str | os.PathLike, T_world_local: dict[str, np.ndarra
     atomic_write_json(path, poses_to_json_dict(T_world_local, **extra))
 
 
+def pose_with_offset(T_world_scan: np.ndarray, offset: np.ndarray) -> np.ndarray:
+    """The same pose between frames moved by ``offset`` (3,): ``S(offset) T S(-offset)``.
+
+    If ``T_world_scan`` (4, 4) maps points ``p - offset`` of a scan to ``w - offset`` of the
+    world (both shifted into a local frame), the result maps ``p`` to ``w``: the rotation is
+    kept, the translation becomes ``t + offset - R offset``. ``-offset`` goes the other way.
+    """
+    T = np.asarray(T_world_scan, dtype=np.float64)
+    o = np.asarray(offset, dtype=np.float64).reshape(3)
+    out = T.copy()
+    out[:3, 3] = T[:3, 3] + (o - T[:3, :3] @ o)
+    return out
+
+
 def check_pose(a, where: str, dim: int | None = 3) -> np.ndarray:
     """A rigid pose as a (d+1, d+1) float64 array, or InputError naming ``where``.
 

@@ -19,7 +19,8 @@ from mvreg.io.poses import write_poses_json, write_poses_kitti, write_poses_tum
 def merged_cloud(reg, voxel_size: float | None = None):
     """All registered scans in the world frame, colored per scan, voxel-downsampled.
 
-    Returns (points (N, 3), colors (N, 3) float in [0, 1]).
+    Returns (points (N, 3) float64 in the files' frame -- the local frame offset of a
+    georeferenced input added back after downsampling --, colors (N, 3) float in [0, 1]).
     """
     import open3d as o3d
 
@@ -36,7 +37,9 @@ def merged_cloud(reg, voxel_size: float | None = None):
     pcd.colors = o3d.utility.Vector3dVector(np.concatenate(cols))
     v = voxel_size or reg.config.output.merged_voxel_size or reg.scales.fine_voxel
     pcd = pcd.voxel_down_sample(v)
-    return np.asarray(pcd.points), np.asarray(pcd.colors)
+    points = np.asarray(pcd.points)
+    offset = reg.local_frame_offset
+    return (points if offset is None else points + offset), np.asarray(pcd.colors)
 
 
 def write_ply(path: str | Path, points: np.ndarray, colors: np.ndarray | None = None) -> None:
@@ -82,8 +85,9 @@ def _moved_after_certificate(reg) -> dict | None:
 def write_registration(reg, out: str | Path) -> dict[str, Path]:
     """Write every result file of ``reg`` into ``out`` (already prepared). Returns paths."""
     out = Path(out)
-    names = list(reg.T_world_scan)
-    poses = [reg.T_world_scan[n] for n in names]
+    T_world_scan = reg.T_world_scan_in_file_frame()  # the user's coordinates
+    names = list(T_world_scan)
+    poses = [T_world_scan[n] for n in names]
     paths = {
         "poses": out / "poses.json",
         "tum": out / "poses_tum.txt",
@@ -94,10 +98,13 @@ def write_registration(reg, out: str | Path) -> dict[str, Path]:
     cert = (
         reg.solve.certificate.to_dict() if reg.solve is not None and reg.solve.certificate else None
     )
+    offset = reg.local_frame_offset
     write_poses_json(
         paths["poses"],
-        reg.T_world_scan,
+        T_world_scan,
         world_frame=names[0] if names else None,
+        # Subtracted from every scan while registering; the poses are in the files' frame.
+        local_frame_offset=None if offset is None else offset.tolist(),
         unregistered=reg.unregistered,
         # Left out: no independent evidence confirms the pose / a degree of freedom is free.
         unverified=list(getattr(reg, "unverified", [])),
@@ -120,7 +127,9 @@ def write_registration(reg, out: str | Path) -> dict[str, Path]:
 
 def residual_heatmap(reg, max_points: int = 100_000, k: int = 12):
     """Merged points (P, 3) and each point's distance (P,) to the nearest point of another
-    scan (inf when none within 4 feature voxels: no overlap there).
+    scan (inf when none within 4 feature voxels: no overlap there). The points are in the
+    run's local frame (``reg.local_frame_offset`` not added: they go to the recording,
+    which stores float32).
 
     One KD-tree over all scans (subsampled to ``max_points``), k nearest neighbours with a
     distance bound, the first one from another scan.

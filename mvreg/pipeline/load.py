@@ -2,6 +2,12 @@
 
 Returns the scans, the source as text and the ground truth (``ground_truth.json`` in the
 folder, used only to evaluate). Raises InputError / ScanFileError naming the culprit.
+
+A scan of a folder with fewer than ``min_points`` points is left out and reported (it is
+listed as unregistered), unless fewer than 2 scans remain. Scans far from their
+coordinate origin (georeferenced: UTM, ~1e6 m) are shifted into a local frame by one
+offset for the whole input (:func:`to_local_frame`), in float64 before any other stage:
+later stages work in float32 in places, which keeps ~7 digits.
 """
 
 from __future__ import annotations
@@ -11,21 +17,25 @@ from pathlib import Path
 
 import numpy as np
 
-from mvreg.errors import InputError, ScanFileError
-from mvreg.io.loaders import Scan, load_scan_file, scan_folder
-from mvreg.io.poses import read_poses_json
+from mvreg.errors import InputError
+from mvreg.io.loaders import Scan, TooFewPointsError, display_path, load_scan_file, scan_folder
+from mvreg.io.poses import pose_with_offset, read_poses_json
 
 
 @dataclass
 class Loaded:
     """What the load stage read: the scans (in order), the source as text (None for
-    arrays), the ground truth ({name: (4, 4)}, evaluation only) and the folder entries
-    that were not scans (``[{"file", "reason"}]``: the CLI warns about them)."""
+    arrays), the ground truth ({name: (4, 4)}, evaluation only), the folder entries that
+    were not read (``[{"file", "reason"}]``: the CLI warns about them) and the scans left
+    out for too few points (same list, with a ``"scan"`` key: reported as unregistered by
+    :class:`~mvreg.pipeline.result.Registration`). ``local_frame_offset``: (3,) float64
+    subtracted from every scan and from the truth (None: none)."""
 
     scans: list[Scan]
     source: str | None
     truth: dict | None
     skipped: list[dict] = field(default_factory=list)
+    local_frame_offset: np.ndarray | None = None
 
 
 def load_source(
@@ -37,10 +47,68 @@ def load_source(
         out = _load_folder(Path(source), min_points, max_points, truth, prog)
     else:
         out = Loaded(_from_arrays(source, names, min_points), None, truth)
-    out.scans = [drop_far_strays(s, min_points) for s in out.scans]
+        out.scans = [drop_far_strays(s, min_points) for s in out.scans]
     if len(out.scans) < 2:
-        raise InputError(f"{source}: {what} needs at least 2 scans, found {len(out.scans)}")
-    return out
+        left_out = [s["scan"] for s in out.skipped if "scan" in s]
+        extra = f" ({len(left_out)} more with too few points: {', '.join(left_out)})"
+        raise InputError(
+            f"{source}: {what} needs at least 2 scans, found {len(out.scans)}"
+            + (extra if left_out else "")
+        )
+    return to_local_frame(out)
+
+
+# The scans of an input whose box is further from the coordinate origin than this many
+# times its diagonal are shifted: a georeferenced folder (UTM, ~1e6 m) is 1e3 to 1e6
+# times as far as it is large, scans in their scanner frames about 1 time at most.
+LOCAL_FRAME_RATIO = 10.0
+
+
+def local_frame_offset(scans: list[Scan]) -> np.ndarray | None:
+    """The offset ((3,) float64) to subtract from every scan, or None when the scans'
+    common box lies within ``LOCAL_FRAME_RATIO`` diagonals of the origin.
+
+    It is the centre of that box rounded to the power of ten at or above its diagonal
+    (at least 1): a round number, the same for a folder and that folder moved by any
+    multiple of it (a georeferenced set and its local twin see the same coordinates).
+    """
+    lo = np.min([s.points.min(axis=0) for s in scans], axis=0)
+    hi = np.max([s.points.max(axis=0) for s in scans], axis=0)
+    centre = (lo + hi) / 2.0
+    size = max(float(np.linalg.norm(hi - lo)), np.finfo(float).tiny)
+    if np.max(np.abs(centre)) <= LOCAL_FRAME_RATIO * size:
+        return None
+    step = max(1.0, 10.0 ** np.ceil(np.log10(size)))
+    return np.round(centre / step) * step
+
+
+def to_local_frame(loaded: Loaded) -> Loaded:
+    """``loaded`` with its scans (points, sensor origins, stored poses) and its truth
+    shifted by :func:`local_frame_offset` (in float64), the offset recorded in
+    ``Loaded.local_frame_offset`` and on every scan; unchanged when there is none.
+
+    The poses found for the shifted scans are put back into the files' frame by
+    :func:`mvreg.io.poses.pose_with_offset` (``Registration.T_world_scan_in_file_frame``).
+    """
+    offset = local_frame_offset(loaded.scans)
+    if offset is None:
+        return loaded
+    loaded.scans = [_shift_scan(s, offset) for s in loaded.scans]
+    if loaded.truth:
+        loaded.truth = {n: pose_with_offset(T, -offset) for n, T in loaded.truth.items()}
+    loaded.local_frame_offset = offset
+    return loaded
+
+
+def _shift_scan(scan: Scan, offset: np.ndarray) -> Scan:
+    origin, hint = scan.sensor_origin, scan.T_world_scan_hint
+    return replace(
+        scan,
+        points=scan.points - offset,
+        sensor_origin=None if origin is None else origin - offset,
+        T_world_scan_hint=None if hint is None else pose_with_offset(hint, -offset),
+        local_frame_offset=offset.copy(),
+    )
 
 
 # A point this many times further from its scan's median point than the scan's median
@@ -60,7 +128,12 @@ def drop_far_strays(scan: Scan, min_points: int) -> Scan:
         return scan
     keep = ~far
     if keep.sum() < min_points:
-        raise ScanFileError(scan.path, f"only {int(keep.sum())} points away from far strays")
+        raise TooFewPointsError(
+            scan.path,
+            f"only {int(keep.sum())} points away from far strays, fewer than the minimum "
+            f"of {min_points} (min_points)",
+            scan=scan.name,
+        )
     return replace(
         scan,
         points=scan.points[keep],
@@ -77,13 +150,21 @@ def _load_folder(folder: Path, min_points, max_points, truth, prog) -> Loaded:
     if not listing.files:
         raise InputError(f"{folder}: no scan files found")
     prog.stage("load", len(listing.files))
-    scans = []
+    scans, rejected = [], []
     for f in listing.files:
-        scans += load_scan_file(f, min_points=min_points, max_points=max_points)
+        for scan in load_scan_file(f, min_points, max_points, rejected=rejected):
+            try:
+                scans.append(drop_far_strays(scan, min_points))
+            except TooFewPointsError as e:
+                rejected.append(e)
         prog.advance()
     if truth is None and (folder / "ground_truth.json").exists():
         truth = read_poses_json(folder / "ground_truth.json")
-    return Loaded(scans, str(folder), truth, listing.skipped_report())
+    left_out = [
+        {"file": display_path(Path(e.path).name), "reason": e.reason, "scan": e.scan}
+        for e in rejected
+    ]
+    return Loaded(scans, str(folder), truth, listing.skipped_report() + left_out)
 
 
 def _from_arrays(source, names, min_points: int) -> list[Scan]:

@@ -9,7 +9,9 @@ import numpy as np
 
 from mvreg.config import RegisterConfig
 from mvreg.globalstage.verify import NOTE as VERIFICATION_NOTE
+from mvreg.globalstage.verify import ScanVerification
 from mvreg.io.loaders import Scan
+from mvreg.io.poses import pose_with_offset
 from mvreg.scales import Scales
 
 
@@ -25,6 +27,17 @@ class Registration:
     or a degree of freedom of it is not fixed by the data (``verification`` says why, per
     scan). ``solve`` is the last global solve: its certificate proves that solve optimal
     for the accepted pairs, not the pairs right. ``scales``: the lengths of the run.
+
+    Scans the load stage left out (fewer than ``min_points`` points) are in
+    ``rejected_scans`` (``{"scan", "file", "reason"}``) and in ``unregistered``, with
+    the reason in ``verification``; ``scan_names`` and ``scans`` are the scans that were
+    registered, in order.
+
+    Local frame: when the scans were far from their origin (georeferenced), the load
+    stage subtracted ``local_frame_offset`` from every one of them; ``scans``,
+    ``T_world_scan`` and the evaluation are then in that local frame, and
+    :meth:`T_world_scan_in_file_frame` gives the poses in the files' own coordinates
+    (what the output files hold). Without an offset the two are the same.
     """
 
     scan_names: list[str]
@@ -46,6 +59,45 @@ class Registration:
     unverified: list[str] = field(default_factory=list)  # left out: pose not confirmed
     undetermined: list[str] = field(default_factory=list)  # left out: a free DOF
     verification: dict = field(default_factory=dict)  # {scan: status, reason, evidence}
+    rejected_scans: list[dict] = field(default_factory=list)  # left out: too few points
+
+    def __post_init__(self) -> None:
+        # The load stage hands the scans it left out (too few points) over with the
+        # skipped files (entries with a "scan" key): they are scans of the input, so
+        # they are reported as unregistered, with the reason.
+        left_out = [s for s in self.skipped_files if "scan" in s]
+        if not left_out:
+            return
+        self.skipped_files = [s for s in self.skipped_files if "scan" not in s]
+        self.rejected_scans = [*self.rejected_scans, *left_out]
+        self.unregistered = [*self.unregistered, *(s["scan"] for s in left_out)]
+        self.verification = {
+            **self.verification,
+            **{
+                s["scan"]: ScanVerification("unregistered", s["reason"]).to_dict() for s in left_out
+            },
+        }
+
+    @property
+    def local_frame_offset(self) -> np.ndarray | None:
+        """(3,) float64 the load stage subtracted from every scan (None: no shift)."""
+        return next(
+            (s.local_frame_offset for s in self.scans if s.local_frame_offset is not None), None
+        )
+
+    def T_world_scan_in_file_frame(self) -> dict[str, np.ndarray]:
+        """{scan name: (4, 4)} ``T_world_scan`` mapping the files' own coordinates to the
+        world frame (the first registered scan's file frame); ``T_world_scan`` itself when
+        there is no local frame offset."""
+        offset = self.local_frame_offset
+        if offset is None:
+            return dict(self.T_world_scan)
+        return {n: pose_with_offset(T, offset) for n, T in self.T_world_scan.items()}
+
+    @property
+    def all_scan_names(self) -> list[str]:
+        """Every scan of the input: the registered run's, then those left out at loading."""
+        return [*self.scan_names, *(s["scan"] for s in self.rejected_scans)]
 
     @property
     def voxel_size(self) -> float:
@@ -68,6 +120,7 @@ class Registration:
     def report(self) -> dict:
         """The content of report.json (the configuration with the resolved voxel size)."""
         s = self.solve
+        offset = self.local_frame_offset
         config = self.config.model_dump(mode="json")
         config["preprocess"]["voxel_size"] = self.scales.voxel
         return {
@@ -76,8 +129,12 @@ class Registration:
             "config": config,
             "voxel_size": self.scales.voxel,
             "scales": self.scales.to_dict(),
-            "scans": self.scan_names,
+            "scans": self.all_scan_names,
+            # Poses and merged cloud are in the files' frame; the solver, pairs and
+            # evaluation in the local frame (file coordinates minus this offset).
+            "local_frame_offset": None if offset is None else offset.tolist(),
             "skipped_files": self.skipped_files,
+            "rejected_scans": self.rejected_scans,
             "registered": list(self.T_world_scan),
             "unregistered": self.unregistered,
             "unverified": self.unverified,

@@ -29,6 +29,7 @@ from mvreg.io.loaders.base import (
     RawCloud,
     Scan,
     ScanLoader,
+    TooFewPointsError,
     validate_cloud,
 )
 from mvreg.io.loaders.e57 import E57Loader
@@ -49,6 +50,7 @@ __all__ = [
     "Scan",
     "ScanListing",
     "ScanLoader",
+    "TooFewPointsError",
     "display_path",
     "list_scan_files",
     "load_scan",
@@ -102,6 +104,7 @@ def load_scan_file(
     path: str | Path,
     min_points: int = DEFAULT_MIN_POINTS,
     max_points: int | None = DEFAULT_MAX_POINTS,
+    rejected: list[TooFewPointsError] | None = None,
 ) -> list[Scan]:
     """Read and check every scan of one file (one, or several for E57).
 
@@ -110,6 +113,8 @@ def load_scan_file(
         max_points: most points a scan may have (``max_points_per_scan``, default
             50 million); checked from the header or the file before reading it. None: no
             limit.
+        rejected: when given, a scan with fewer than ``min_points`` valid points is
+            appended to it (as :class:`TooFewPointsError`) and left out instead of raised.
 
     Raises:
         ScanFileError: missing, unreadable, empty, corrupt, all-NaN, duplicates only,
@@ -138,7 +143,15 @@ def load_scan_file(
         raise ScanFileError(path, f"cannot read file ({e.strerror or e})") from e
     except Exception as e:  # noqa: BLE001 - whatever a format library raises: name the file
         raise ScanFileError(path, f"cannot read file ({type(e).__name__}: {e})") from e
-    return [validate_cloud(path, raw, min_points=min_points) for raw in raws]
+    scans = []
+    for raw in raws:
+        try:
+            scans.append(validate_cloud(path, raw, min_points=min_points))
+        except TooFewPointsError as e:
+            if rejected is None:
+                raise
+            rejected.append(e)
+    return scans
 
 
 def load_scan(

@@ -46,6 +46,9 @@ class Scan:
             scanner poses), a possible initial guess; None when the file has none.
         num_dropped_far: points dropped by the load stage as far strays
             (:func:`mvreg.pipeline.load.drop_far_strays`).
+        local_frame_offset: (3,) float64 subtracted from the file's coordinates by the
+            load stage (georeferenced folders, :func:`mvreg.pipeline.load.to_local_frame`):
+            the file holds ``points + local_frame_offset``. None: the file's own coordinates.
     """
 
     name: str
@@ -57,6 +60,7 @@ class Scan:
     sensor_origin: np.ndarray | None = field(default=None)
     T_world_scan_hint: np.ndarray | None = field(default=None, repr=False)
     num_dropped_far: int = 0
+    local_frame_offset: np.ndarray | None = field(default=None, repr=False)
 
     @property
     def num_points(self) -> int:
@@ -69,6 +73,19 @@ class Scan:
         )
         with_ = f", with {'+'.join(extras)}" if extras else ""
         return f"Scan({self.name!r}, points={self.num_points}{with_}{dropped})"
+
+
+class TooFewPointsError(ScanFileError):
+    """A scan has fewer than ``min_points`` usable points. The load stage of ``register``
+    lists such a scan as unregistered (with ``reason``) and goes on with the others.
+
+    Attributes:
+        scan: the scan's name (the file name, or the scan's name inside an E57 file).
+    """
+
+    def __init__(self, path, reason: str, scan: str | None = None):
+        self.scan = scan or Path(path).name
+        super().__init__(path, reason)
 
 
 @runtime_checkable
@@ -150,8 +167,10 @@ def validate_cloud(path: Path, raw: RawCloud, min_points: int = DEFAULT_MIN_POIN
     if num_valid == 0:
         raise ScanFileError(path, f"all {n} points have NaN or infinite coordinates")
     if num_valid < min_points:
-        raise ScanFileError(
-            path, f"only {num_valid} valid points, fewer than the minimum of {min_points}"
+        raise TooFewPointsError(
+            path,
+            f"only {num_valid} valid points, fewer than the minimum of {min_points} (min_points)",
+            scan=raw.name or path.name,
         )
     if num_valid < n:
         pts = pts[finite]

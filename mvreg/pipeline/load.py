@@ -7,7 +7,8 @@ A scan of a folder with fewer than ``min_points`` points is left out and reporte
 listed as unregistered), unless fewer than 2 scans remain. Scans far from their
 coordinate origin (georeferenced: UTM, ~1e6 m) are shifted into a local frame by one
 offset for the whole input (:func:`to_local_frame`), in float64 before any other stage:
-later stages work in float32 in places, which keeps ~7 digits.
+later stages lose digits far from the origin (a normal's covariance subtracts squares of
+~1e12 there; the recording is float32).
 """
 
 from __future__ import annotations
@@ -60,7 +61,7 @@ def load_source(
 
 # The scans of an input whose box is further from the coordinate origin than this many
 # times its diagonal are shifted: a georeferenced folder (UTM, ~1e6 m) is 1e3 to 1e6
-# times as far as it is large, scans in their scanner frames about 1 time at most.
+# times as far as it is large, scans in their scanner frames rarely more than once.
 LOCAL_FRAME_RATIO = 10.0
 
 

@@ -34,13 +34,15 @@ GRID = 2.0**-33  # the spacing of float64 numbers in [2^19, 2^20): 1e6 + x is ex
 runner = CliRunner()
 
 
-def write_twin(scans: list[Scan], truth: dict, folder: Path, offset: float) -> None:
-    """``scans`` quantized to GRID, plus ``offset`` on every axis, as float64 .npy files
-    with their ground truth (the same world, moved by ``offset``)."""
+def write_twin(
+    scans: list[Scan], truth: dict, folder: Path, offset: float, grid: float | None = GRID
+) -> None:
+    """``scans`` quantized to ``grid`` (None: as they are), plus ``offset`` on every axis,
+    as float64 .npy files with their ground truth (the same world, moved by ``offset``)."""
     folder.mkdir()
     o = np.full(3, offset)
     for s in scans:
-        q = np.round(s.points / GRID) * GRID
+        q = s.points if grid is None else np.round(s.points / grid) * grid
         np.save(folder / f"{Path(s.name).stem}.npy", q + o)
     write_poses_json(
         folder / "ground_truth.json",
@@ -60,6 +62,7 @@ def twins(tmp_path_factory) -> tuple[Path, Path]:
     truth = read_poses_json(tmp / "synth" / "ground_truth.json")
     write_twin(scans, truth, tmp / "local", 0.0)
     write_twin(scans, truth, tmp / "utm", OFFSET)
+    write_twin(scans, truth, tmp / "utm_rounded", OFFSET, grid=None)
     return tmp / "local", tmp / "utm"
 
 
@@ -119,6 +122,18 @@ def test_utm_offset_registers_like_its_local_twin(twins, tmp_path):
     merged_utm = read_double_ply(tmp_path / "out_utm" / "merged.ply")
     assert merged_utm.shape == merged_local.shape
     np.testing.assert_allclose(merged_utm - OFFSET, merged_local, rtol=0, atol=1e-9)
+
+
+def test_utm_offset_without_a_grid_registers_every_scan(twins):
+    """The files' own rounding (1e-10 at 1e6) is all that differs from the twin: before
+    the local frame, this set registered 0 of its scans."""
+    from mvreg import register
+
+    reg = register(twins[1].parent / "utm_rounded", seed=0)
+    assert reg.all_registered and len(reg.T_world_scan) == 6
+    assert reg.local_frame_offset.tolist() == [OFFSET] * 3
+    assert reg.truth_errors["rotation_deg_max"] < 0.5
+    assert reg.truth_errors["translation_at_centroid_max"] < 0.01  # object diagonal 1.4
 
 
 def test_ordinary_scans_are_not_shifted(shared_data, twins):

@@ -23,6 +23,7 @@ import numpy as np
 from mvreg.config import RegisterConfig
 from mvreg.executor import Executor
 from mvreg.globalstage.joint_icp import joint_icp
+from mvreg.globalstage.place import place_leftovers
 from mvreg.globalstage.refine import prepare_dense_levels, refine_rounds
 from mvreg.globalstage.robust import cycle_check, final_check, robust_rounds
 from mvreg.globalstage.solve import GlobalSolution, TrackSolver
@@ -75,6 +76,7 @@ class TrackPlan(Protocol):
     """How tracks are built from the pair results and refined (one per pair-graph kind)."""
 
     final_check: bool
+    model_search: bool  # verification searches the model of the others (second poses, leftovers)
 
     def prepare(self, ctx: GlobalContext, pre) -> None:
         """Start work that needs no poses (runs while the first solve does)."""
@@ -145,10 +147,25 @@ class GlobalStage:
         scan that had a pose, the dropped scan indices). A dropped scan gets no pose."""
         out = self.run(ctx, pre, results, progress, timed)
         progress.stage("verification")
-        return verify_and_resolve(
+        out, ver, dropped = verify_and_resolve(
             pre, results, out, lambda kept: self.run(ctx, pre, kept, progress, timed),
-            ctx.voxel, ctx.cfg.align,
+            ctx.voxel, ctx.cfg.align, discrete=self.plan.model_search,
         )  # fmt: skip
+        if self.plan.model_search and out.solution is not None:
+            verified = {s: T for s, T in out.T_world_scan.items() if s not in dropped}
+            todo = [s for s in range(len(pre)) if s not in verified and _worth_placing(ver.get(s))]
+            for s, (T, v) in place_leftovers(pre, verified, todo, ctx.voxel, ctx.cfg.align).items():
+                out.solution.T_world_scan[s] = T
+                ver[s] = v
+                dropped = [d for d in dropped if d != s]
+            timed("place_leftovers")
+        return out, ver, dropped
+
+
+def _worth_placing(v) -> bool:
+    """A scan without a verified pose is searched against the model unless the data were
+    found not to fix its pose (a second search would find the same ambiguity)."""
+    return v is None or v.status != "undetermined"
 
 
 class MultiviewPlan:
@@ -156,6 +173,7 @@ class MultiviewPlan:
     accepted pair, multiview ICP rounds (the last on the dense level), final check."""
 
     final_check = True
+    model_search = True
 
     def prepare(self, ctx, pre):
         """Resample the raw scans for the last refinement round in the background."""

@@ -46,7 +46,7 @@ Contract (pure functions on arrays, preprocessed scans and pair results; no I/O)
     that is below the scans' noise (``lambda_min < (noise / voxel)**2``), the direction is
     a candidate, and it is undetermined when point-to-plane ICP against the model, started
     ``probe_voxels`` (3) feature voxels along it, does not come back (median point motion
-    above ``agree_voxels``) and lands on a fit as good (:func:`_equally_good`: residual
+    above ``agree_voxels``) and lands on a fit as good (:func:`equally_good`: residual
     within the acceptance rule and at most 1.25x the final one's plus its sampling spread,
     overlap share at least 0.9x the final one's minus three binomial standard errors):
     the data cannot tell the two poses apart. Only continuous freedoms are found this way;
@@ -67,11 +67,12 @@ from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 
 import numpy as np
-from scipy.spatial import cKDTree
 
 from mvreg.config.align import AlignConfig
 from mvreg.geometry import invert_transform, rotation_from_vector, transform_points
+from mvreg.globalstage.model_search import distant_alternative
 from mvreg.globalstage.robust import pair_disagreements
+from mvreg.globalstage.scan_model import ScanModel, equally_good, model_fit, scan_model
 from mvreg.pairwise.icp import icp_point_to_plane
 from mvreg.pairwise.scoring import free_space_violation, unseen_violation
 
@@ -160,14 +161,11 @@ def on_cycle(graph: dict[int, set[int]]) -> set[int]:
     return out
 
 
-def main_block(graph: dict[int, set[int]]) -> set[int]:
-    """The largest 2-edge-connected block of the graph (ties: the one holding the lowest
-    scan index): the scans that stay connected when any one pair is removed. A group of
-    scans that agree with each other but hang on the rest by a single pair (a bridge) is
-    outside it: the group's place relative to the rest rests on that one pair."""
+def bridges(graph: dict[int, set[int]]) -> set[frozenset]:
+    """The pairs of the graph whose removal disconnects it (Tarjan, iterative)."""
     index: dict[int, int] = {}
     low: dict[int, int] = {}
-    bridges: set[frozenset] = set()
+    out: set[frozenset] = set()
     counter = 0
     for root in sorted(graph):
         if root in index:
@@ -183,7 +181,7 @@ def main_block(graph: dict[int, set[int]]) -> set[int]:
                 if parent is not None:
                     low[parent] = min(low[parent], low[v])
                     if low[v] > index[parent]:
-                        bridges.add(frozenset((parent, v)))
+                        out.add(frozenset((parent, v)))
                 continue
             if w == parent:
                 continue
@@ -193,78 +191,53 @@ def main_block(graph: dict[int, set[int]]) -> set[int]:
                 index[w] = low[w] = counter
                 counter += 1
                 stack.append((w, v, iter(sorted(graph[w]))))
+    return out
+
+
+def _reach(graph: dict[int, set[int]], start: int, cut: set[frozenset]) -> set[int]:
+    """Scans reached from ``start`` without crossing the pairs in ``cut``."""
+    seen, todo = {start}, [start]
+    while todo:
+        a = todo.pop()
+        for b in graph[a]:
+            if b not in seen and frozenset((a, b)) not in cut:
+                seen.add(b)
+                todo.append(b)
+    return seen
+
+
+def main_block(graph: dict[int, set[int]]) -> set[int]:
+    """The largest 2-edge-connected block of the graph (ties: the one holding the lowest
+    scan index): the scans that stay connected when any one pair is removed. A group of
+    scans that agree with each other but hang on the rest by a single pair (a bridge) is
+    outside it: the group's place relative to the rest rests on that one pair."""
+    cut = bridges(graph)
     seen: set[int] = set()
     blocks = []
     for s in sorted(graph):
-        if s in seen:
-            continue
-        block, todo = {s}, [s]
-        seen.add(s)
-        while todo:
-            a = todo.pop()
-            for b in graph[a]:
-                if b not in seen and frozenset((a, b)) not in bridges:
-                    seen.add(b)
-                    block.add(b)
-                    todo.append(b)
-        blocks.append(block)
+        if s not in seen:
+            block = _reach(graph, s, cut)
+            seen |= block
+            blocks.append(block)
     best = max(blocks, key=lambda b: (len(b), -min(b)), default=set())
     return best if len(best) >= 3 else set()
 
 
+def bridge_groups(graph: dict[int, set[int]]) -> list[list[int]]:
+    """For each bridge of the graph, the smaller of the two sides it joins (ties: the
+    side without the lowest scan index), when it has at least two scans: groups of scans
+    placed relative to the rest by that one pair. Smallest first, each once."""
+    groups = set()
+    for edge in sorted(bridges(graph), key=sorted):
+        a, b = sorted(edge)
+        side_a, side_b = _reach(graph, a, {edge}), _reach(graph, b, {edge})
+        side = side_b if (len(side_b), min(side_a)) <= (len(side_a), min(side_b)) else side_a
+        if len(side) >= 2:
+            groups.add(tuple(sorted(side)))
+    return [list(g) for g in sorted(groups, key=lambda g: (len(g), g))]
+
+
 # ---------------------------------------------------------------------------- evidence (b)
-
-
-@dataclass
-class _Model:
-    points: np.ndarray
-    normals: np.ndarray
-    owner: np.ndarray  # scan index of each model point
-    noise: np.ndarray  # that scan's noise estimate
-    tree: cKDTree
-
-
-def _model(pre, T_world_scan, members) -> _Model | None:
-    members = [k for k in members if k in T_world_scan]
-    if not members:
-        return None
-    pts, nrm, own, noi = [], [], [], []
-    for k in members:
-        T = T_world_scan[k]
-        pts.append(transform_points(T, pre[k].fine_points))
-        nrm.append(pre[k].fine_normals @ T[:3, :3].T)
-        own.append(np.full(len(pre[k].fine_points), k))
-        noi.append(np.full(len(pre[k].fine_points), pre[k].noise))
-    p = np.concatenate(pts)
-    return _Model(p, np.concatenate(nrm), np.concatenate(own), np.concatenate(noi), cKDTree(p))
-
-
-def _match(model: _Model, pts, nrm, max_dist, min_cos):
-    """Nearest model point within ``max_dist`` with agreeing normal: (index or -1,
-    point-to-plane residual or inf)."""
-    d, nn = model.tree.query(pts, distance_upper_bound=max_dist)
-    idx = np.full(len(pts), -1, np.int64)
-    res = np.full(len(pts), np.inf)
-    found = np.flatnonzero(np.isfinite(d))
-    k = nn[found]
-    ok = np.einsum("ij,ij->i", model.normals[k], nrm[found]) >= min_cos
-    found, k = found[ok], k[ok]
-    idx[found] = k
-    res[found] = np.abs(np.einsum("ij,ij->i", model.normals[k], pts[found] - model.points[k]))
-    return idx, res
-
-
-def _fit(model, pts, nrm, noise_s, voxel, acfg: AlignConfig):
-    """Overlap share, residual ratio, tight matches (mask), model indices, noise."""
-    idx, res = _match(
-        model, pts, nrm, acfg.score_distance_voxels * voxel, acfg.score_min_normal_cos
-    )
-    has = idx >= 0
-    noise = 0.5 * (noise_s + (np.median(model.noise[idx[has]]) if np.any(has) else noise_s))
-    tight = res <= acfg.tight_residual_ratio * noise
-    overlap = float(np.mean(tight)) if len(pts) else 0.0
-    ratio = float(np.median(res[has]) / noise) if np.any(has) else float("inf")
-    return overlap, ratio, tight, idx, noise
 
 
 def normal_matrix(points: np.ndarray, normals: np.ndarray) -> tuple[np.ndarray, np.ndarray, float]:
@@ -306,7 +279,7 @@ def _step(e: np.ndarray, distance: float, c: np.ndarray, L: float) -> np.ndarray
 
 
 def degenerate_direction(
-    model: _Model,
+    model: ScanModel,
     pts: np.ndarray,
     nrm: np.ndarray,
     tight: np.ndarray,
@@ -327,7 +300,7 @@ def degenerate_direction(
     gate = (noise / voxel) ** 2
     stride = max(1, int(np.ceil(len(pts) / max_source)))
     src, src_n = pts[::stride], nrm[::stride]
-    base_overlap, base_ratio, base_tight, _, _ = _fit(model, src, src_n, noise, voxel, acfg)
+    base_overlap, base_ratio, base_tight, _, _ = model_fit(model, src, src_n, noise, voxel, acfg)
     for k in range(6):
         if lam[k] >= gate:
             break
@@ -342,24 +315,10 @@ def degenerate_direction(
             if moved <= agree_voxels * voxel:
                 continue  # came back: this direction is fixed by the data
             q, qn = transform_points(T, src), src_n @ T[:3, :3].T
-            overlap, ratio, tight2, _, _ = _fit(model, q, qn, noise, voxel, acfg)
-            if _equally_good(overlap, ratio, base_overlap, base_ratio, len(src), acfg):
+            overlap, ratio, tight2, _, _ = model_fit(model, q, qn, noise, voxel, acfg)
+            if equally_good(overlap, ratio, base_overlap, base_ratio, len(src), acfg):
                 return _describe(e, c, L)
     return None
-
-
-def _equally_good(overlap, ratio, base_overlap, base_ratio, n, acfg: AlignConfig) -> bool:
-    """Whether a probed pose fits the model as well as the final one: residual within the
-    acceptance rule and no worse than the final one's by more than its sampling spread,
-    overlap share no lower than the final one's by more than its sampling spread (binomial
-    standard error, times 3, over the ``n`` probed points) plus a tenth (the probe
-    moves the border of the overlap)."""
-    if not ratio <= acfg.max_residual_ratio:
-        return False
-    spread = 3.0 * np.sqrt(max(base_overlap * (1 - base_overlap), 1e-12) / max(n, 1))
-    if overlap < base_overlap * 0.9 - spread:
-        return False
-    return ratio <= base_ratio * 1.25 + 3.0 / np.sqrt(max(n, 1))
 
 
 # ---------------------------------------------------------------------------- verify
@@ -373,6 +332,7 @@ def verify_scans(
     voxel: float,
     align_cfg: AlignConfig | None = None,
     agree_voxels: float = 1.0,
+    discrete: bool = True,
 ) -> dict[int, ScanVerification]:
     """A :class:`ScanVerification` per registered scan (module docstring).
 
@@ -384,6 +344,8 @@ def verify_scans(
         voxel: feature voxel size.
         align_cfg: the pairwise acceptance rule (limits reused here).
         agree_voxels: a pair agrees with the final poses within this many feature voxels.
+        discrete: also search each scan against the others for a distant pose that fits
+            as well (:mod:`mvreg.globalstage.model_search`).
     """
     acfg = align_cfg or AlignConfig()
     scans = sorted(T_world_scan)
@@ -399,7 +361,44 @@ def verify_scans(
             s, pre, T_world_scan, graph, cycle, main, voxel, acfg, agree_voxels
         )
     _settle_conflicts(out, conflicts, scans)
+    if discrete:
+        search_alternatives(out, graph, pre, T_world_scan, voxel, acfg)
     return out
+
+
+def _mark(v: ScanVerification, alt, group: str) -> None:
+    v.status = "unverified" if alt.better else "undetermined"
+    v.evidence = ""
+    v.degenerate_dof = None if alt.better else f"a discrete turn of {alt.angle_deg:.0f} deg"
+    v.reason = (f"moved as one with {group}: " if group else "") + alt.describe()
+
+
+def search_alternatives(out, graph, pre, T_world_scan, voxel, acfg) -> None:
+    """Search every verified scan, then every group of verified scans that agree with each
+    other but hang on the rest by one pair (:func:`bridge_groups`, moved as one rigid
+    body), against the model of the others for a second pose
+    (:func:`mvreg.globalstage.model_search.distant_alternative`); mark those that have one
+    ``undetermined`` (as good) or ``unverified`` (better). ``out``: {scan:
+    ScanVerification}, changed in place; ``graph``: the agreeing pairs."""
+    names = [p.name for p in pre]
+    scans = sorted(T_world_scan)
+    for s in scans:
+        others = [k for k in scans if k != s]
+        if out[s].status != "verified" or len(others) < 2:
+            continue
+        model = scan_model(pre, T_world_scan, others)
+        alt = distant_alternative([s], pre, T_world_scan, others, model, voxel, acfg)
+        if alt is not None:
+            _mark(out[s], alt, "")
+    for group in bridge_groups(graph):
+        others = [k for k in scans if k not in group]
+        if any(out[s].status != "verified" for s in group) or len(others) < 2:
+            continue
+        model = scan_model(pre, T_world_scan, others)
+        alt = distant_alternative(group, pre, T_world_scan, others, model, voxel, acfg)
+        if alt is not None:
+            for s in group:
+                _mark(out[s], alt, ", ".join(names[k] for k in group if k != s))
 
 
 def _check_scan(s, pre, T_world_scan, graph, cycle, main, voxel, acfg, agree_voxels):
@@ -415,16 +414,16 @@ def _check_scan(s, pre, T_world_scan, graph, cycle, main, voxel, acfg, agree_vox
     T = T_world_scan[s]
     pts = transform_points(T, pre[s].fine_points)
     nrm = pre[s].fine_normals @ T[:3, :3].T
-    model = _model(pre, T_world_scan, others)
+    model = scan_model(pre, T_world_scan, others)
     if model is None:
         v.status, v.reason = "unverified", "no other registered scan to check it against"
         return v, []
-    overlap, ratio, tight, idx, noise = _fit(model, pts, nrm, pre[s].noise, voxel, acfg)
+    overlap, ratio, tight, idx, noise = model_fit(model, pts, nrm, pre[s].noise, voxel, acfg)
     v.model_overlap, v.model_residual_ratio = overlap, ratio
     owners, counts = np.unique(model.owner[idx[tight]], return_counts=True)
     support = [int(k) for k, n in zip(owners, counts, strict=True) if n >= acfg.min_correspondences]
     v.supporting_scans = [names[k] for k in support]
-    conflicts = _free_space(v, s, others, support, pre, T_world_scan, names, acfg)
+    conflicts = free_space_conflicts(v, s, others, support, pre, T_world_scan, names, acfg)
     dof = degenerate_direction(model, pts, nrm, tight, idx, noise, voxel, acfg, agree_voxels)
     if dof is not None:
         v.status, v.degenerate_dof = "undetermined", dof
@@ -441,7 +440,7 @@ def _check_scan(s, pre, T_world_scan, graph, cycle, main, voxel, acfg, agree_vox
     return v, conflicts
 
 
-def _free_space(v, s, others, support, pre, T_world_scan, names, acfg) -> list[tuple[int, str]]:
+def free_space_conflicts(v, s, others, support, pre, T_world_scan, names, acfg) -> list:
     """Both free-space tests of scan ``s`` against every other scan (the largest values go
     into ``v``); the conflicts, with scans ``s`` shares close matches with only."""
     T = T_world_scan[s]
@@ -523,9 +522,12 @@ def verify_and_resolve(
     align_cfg: AlignConfig | None = None,
     agree_voxels: float = 1.0,
     max_rounds: int = 3,
+    discrete: bool = True,
 ):
     """Verify, drop the scans that are not verified, re-solve the rest without the pairs
-    touching them, and verify again (at most ``max_rounds`` re-solves).
+    touching them, and verify again (at most ``max_rounds`` re-solves). With ``discrete``,
+    the search against the model of the others (:mod:`mvreg.globalstage.model_search`)
+    runs once, when a round finds nothing else to drop (it is the costly part).
 
     ``solved``: the pipeline's state after its global stage, with attributes
     ``T_world_scan`` ({scan index: (4, 4)}) and ``pair_weight`` ({(i, j): weight}).
@@ -536,11 +538,24 @@ def verify_and_resolve(
     """
     dropped: dict[int, ScanVerification] = {}
     rounds = 0
+    searched = not discrete  # the search against the model runs once, on a settled set
+
+    acfg = align_cfg or AlignConfig()
+
+    def check(search: bool, ver: dict | None = None) -> tuple[dict, dict]:
+        T = {s: T for s, T in solved.T_world_scan.items() if s not in dropped}
+        if ver is None:
+            ver = verify_scans(pre, results, solved.pair_weight, T, voxel, acfg, agree_voxels)
+        if search:
+            graph = agreeing_graph(pre, results, solved.pair_weight, T, voxel, agree_voxels)
+            search_alternatives(ver, graph, pre, T, voxel, acfg)
+        return ver, {s: v for s, v in ver.items() if v.status != "verified"}
+
     while True:
-        ver = verify_scans(
-            pre, results, solved.pair_weight, solved.T_world_scan, voxel, align_cfg, agree_voxels
-        )
-        bad = {s: v for s, v in ver.items() if v.status != "verified"}
+        ver, bad = check(False)
+        if not bad and not searched:
+            searched = True
+            ver, bad = check(True, ver)
         if not bad:
             break
         dropped.update(bad)
@@ -550,6 +565,10 @@ def verify_and_resolve(
         rounds += 1
         kept = [r for r in results if r.i not in dropped and r.j not in dropped]
         solved = resolve(kept)
+    if not searched and len([s for s in solved.T_world_scan if s not in dropped]) >= 2:
+        # Rounds ran out before the set settled: search the survivors all the same.
+        ver, bad = check(True)
+        dropped.update(bad)
     ver = {s: v for s, v in ver.items() if s not in dropped and s in solved.T_world_scan}
     ver.update(dropped)
     return solved, ver, sorted(dropped)

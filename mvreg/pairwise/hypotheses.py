@@ -109,11 +109,19 @@ def ransac_numpy(
     seed: int,
     basis: FeatureBasis | None,
     voxel: float,
+    keep_matches: Callable[[np.ndarray, np.ndarray], np.ndarray] | None = None,
 ) -> tuple[np.ndarray, dict]:
-    """Best T_i_j from feature matches; (T, stats). Identity with stats["ok"]=False if none."""
+    """Best T_i_j from feature matches; (T, stats). Identity with stats["ok"]=False if none.
+
+    ``keep_matches``: optional filter of the matches, (points of j, points of i) -> bool
+    mask (e.g. to drop the matches a known pose explains and look for another one).
+    """
     if basis is None:
         basis = FeatureBasis.fit([pre_i.features, pre_j.features], cfg.feature_dims)
     idx_i, idx_j = feature_matches(pre_i, pre_j, basis, cfg.feature_match_eps)
+    if keep_matches is not None:
+        mask = keep_matches(pre_j.points[idx_j], pre_i.points[idx_i])
+        idx_i, idx_j = idx_i[mask], idx_j[mask]
     stats = {"feature_matches": int(len(idx_i)), "ok": False}
     if len(idx_i) < 3:
         return np.eye(4), stats

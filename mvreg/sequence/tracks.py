@@ -170,6 +170,9 @@ class PoseGraphPlan:
     rounds over the kept pairs), the joint ICP over the kept pairs, no final check."""
 
     final_check = False
+    # Odometry orders the frames and bounds their motion: no search against the model (it
+    # would cost a RANSAC per frame and per bridge of a long chain).
+    model_search = False
 
     def prepare(self, ctx, pre) -> None:
         pass

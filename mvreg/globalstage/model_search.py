@@ -1,0 +1,235 @@
+"""Search one scan, or a group of scans moved as one, against the model of the other
+registered scans for a second pose that fits: if a distant pose fits as well, the data do
+not fix the pose (a discrete symmetry: a knot turned 120 deg onto itself, a box turned
+90 deg, a teapot view turned about its axis); if it fits better, the pose is wrong.
+
+The continuous freedoms (a slide along a cylinder, a turn about a sphere's centre) are
+found by :func:`mvreg.globalstage.verify.degenerate_direction`; this module finds the
+discrete ones, which no local probe reaches. Groups matter because scans that agree with
+each other can be wrong together (three teapot views flipped 180 deg as one, linked to the
+rest by one pair): no single scan of the group has a better pose, the group has.
+
+Contract (pure functions on preprocessed scans and poses; no I/O):
+
+* :func:`feature_model` gathers the feature level of some scans in the world frame:
+  points, normals and FPFH descriptors (rotation invariant, so each scan's own descriptors
+  carry over unchanged).
+* :func:`motion_candidates` draws world motions of a source model onto a target model by
+  RANSAC over mutual descriptor matches (:func:`mvreg.pairwise.hypotheses.ransac_numpy`),
+  leaving out the matches the current placement already explains (sequential RANSAC: the
+  pose already found would otherwise fill every slot).
+* :func:`distant_alternative` refines each candidate that moves the source far (median
+  point motion above ``far_voxels`` feature voxels) and brings at least half as much of
+  it onto the model as the current placement (the ``max_refined`` that bring the most;
+  candidates from ``rounds`` rounds of :func:`motion_candidates`), by point-to-plane ICP
+  on the fine level;
+  it returns the first that fits the model as well as the current placement
+  (:func:`mvreg.globalstage.scan_model.equally_good`) or better and that no other scan's
+  view contradicts more than the current placement (:func:`view_conflict`: both
+  free-space tests), or None.
+
+Every threshold is the pairwise acceptance rule's (``AlignConfig``) or in feature voxels;
+none is fitted to an object.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+from scipy.spatial.transform import Rotation
+
+from mvreg.config.align import AlignConfig
+from mvreg.executor import single_threaded_blas
+from mvreg.geometry import invert_transform, transform_points
+from mvreg.globalstage.scan_model import ScanModel, equally_good, model_fit
+from mvreg.pairwise.features import FeatureBasis
+from mvreg.pairwise.hypotheses import ransac_numpy
+from mvreg.pairwise.icp import feature_level_tree, icp_point_to_plane
+from mvreg.pairwise.scoring import free_space_violation, unseen_violation
+
+
+@dataclass
+class FeatureModel:
+    """The feature level of several scans in the world frame (what RANSAC reads)."""
+
+    name: str
+    points: np.ndarray
+    normals: np.ndarray
+    features: np.ndarray
+    _cache: dict = field(default_factory=dict, repr=False)
+
+
+@dataclass(frozen=True)
+class Alternative:
+    """A world motion of the source, far from the identity, that fits the model as well
+    as the current placement or better."""
+
+    motion: np.ndarray  # (4, 4) world -> world
+    angle_deg: float  # its rotation
+    overlap: float
+    residual_ratio: float
+    better: bool  # fits clearly better than the current placement
+    base: tuple[float, float]  # (overlap, residual ratio) of the current placement
+
+    def describe(self) -> str:
+        how = "better" if self.better else "as well"
+        return (
+            f"a second pose {self.angle_deg:.0f} deg away fits the other scans {how} "
+            f"(overlap {self.overlap:.2f} vs {self.base[0]:.2f}, residual "
+            f"{self.residual_ratio:.1f}x vs {self.base[1]:.1f}x the noise)"
+        )
+
+
+def feature_model(pre, T_world_scan: dict[int, np.ndarray], members) -> FeatureModel:
+    pts, nrm, feats = [], [], []
+    for k in members:
+        T = T_world_scan[k]
+        pts.append(transform_points(T, pre[k].points))
+        nrm.append(pre[k].normals @ T[:3, :3].T)
+        feats.append(pre[k].features)
+    return FeatureModel("model", np.concatenate(pts), np.concatenate(nrm), np.concatenate(feats))
+
+
+def motion_candidates(
+    target: FeatureModel, source: FeatureModel, acfg: AlignConfig, voxel: float, seed: int,
+    far: float, max_matches: int = 1500, rounds: int = 1,
+) -> list[np.ndarray]:  # fmt: skip
+    """Distinct RANSAC world motions of ``source`` onto ``target``, best first, drawn only
+    from the descriptor matches that the current placement (the identity) leaves more
+    than ``far`` apart; with ``rounds`` > 1, each further round also leaves out the matches
+    the motions found so far explain (a near-symmetric shape has a family of poses that
+    would otherwise fill every slot)."""
+    found: list[np.ndarray] = [np.eye(4)]
+
+    def keep(src, dst):  # matches no motion found so far explains, at most max_matches
+        mask = np.ones(len(src), bool)
+        for M in found:
+            mask &= np.linalg.norm(transform_points(M, src) - dst, axis=1) > far
+        idx = np.flatnonzero(mask)
+        if len(idx) > max_matches:  # an even spread over them: RANSAC's cost grows with it
+            mask[:] = False
+            mask[idx[np.linspace(0, len(idx) - 1, max_matches).astype(np.int64)]] = True
+        return mask
+
+    # The descriptors' PCA from an even sample of both (the full SVD costs more than RANSAC).
+    stride = max(1, (len(target.features) + len(source.features)) // 4000)
+    basis = FeatureBasis.fit(
+        [target.features[::stride], source.features[::stride]], acfg.feature_dims
+    )
+    out: list[np.ndarray] = []
+    for r in range(rounds):
+        _, stats = ransac_numpy(target, source, acfg, seed + r, basis, voxel, keep)
+        new = list(stats.get("candidates", []))
+        if not new:
+            break
+        out += new
+        found += new
+    return out
+
+
+def _share(target: FeatureModel, source: FeatureModel, M, acfg: AlignConfig, voxel) -> float:
+    tree = feature_level_tree(target)
+    limit = acfg.ransac_distance_voxels * voxel
+    d, _ = tree.query(transform_points(M, source.points), distance_upper_bound=limit)
+    return float(np.mean(np.isfinite(d)))
+
+
+def _moved(M: np.ndarray, pts: np.ndarray) -> float:
+    return float(np.median(np.linalg.norm(transform_points(M, pts) - pts, axis=1)))
+
+
+def view_conflict(group, pre, T_world_scan, others, M: np.ndarray, acfg: AlignConfig):
+    """The first (scan of ``others``, description) whose view contradicts the ``group``
+    moved by the world motion ``M`` more than it contradicts the current placement (share
+    of points in its free space, or where it saw nothing, higher by more than the pairwise
+    limit loosened by ``coarse_gate_slack``); None when no view tells the two apart.
+    Differences, not raw shares: between right poses of views that share no surface both
+    tests read above their limits (docs/design/verification.md)."""
+    fs_limit = min(1.0, acfg.max_free_space_violation * acfg.coarse_gate_slack)
+    un_limit = min(1.0, acfg.max_unseen_violation * acfg.coarse_gate_slack)
+    for k in others:
+        T_k_world = invert_transform(T_world_scan[k])
+        for s in group:
+            alt, cur = T_k_world @ M @ T_world_scan[s], T_k_world @ T_world_scan[s]
+            for test, limit, what in (
+                (free_space_violation, fs_limit, "free space"),
+                (unseen_violation, un_limit, "unseen space"),
+            ):
+                extra = test(pre[k], pre[s], alt, acfg) - test(pre[k], pre[s], cur, acfg)
+                if extra > limit:  # NaN (no view direction) never contradicts
+                    return k, f"{extra:.3f} more of the points in {pre[k].name}'s {what}"
+    return None
+
+
+def distant_alternative(
+    group,
+    pre,
+    T_world_scan: dict[int, np.ndarray],
+    others,
+    model: ScanModel,
+    voxel: float,
+    acfg: AlignConfig,
+    far_voxels: float = 3.0,
+    max_source: int = 1000,
+    max_refined: int = 4,
+    rounds: int = 2,
+) -> Alternative | None:
+    """A world motion of the scans ``group`` (moved as one), far from the identity, under
+    which they fit ``model`` (the fine level of ``others``) as well or better and that no
+    view of ``others`` contradicts more; or None (module docstring)."""
+    with single_threaded_blas():  # small SVDs and solves: threads only busy-wait
+        return _search(group, pre, T_world_scan, others, model, voxel, acfg, far_voxels,
+                       max_source, max_refined, rounds)  # fmt: skip
+
+
+def _search(group, pre, T_world_scan, others, model, voxel, acfg, far_voxels, max_source,
+            max_refined, rounds) -> Alternative | None:  # fmt: skip
+    group = list(group)
+    target = feature_model(pre, T_world_scan, others)
+    source = feature_model(pre, T_world_scan, group)
+    far = far_voxels * voxel
+    candidates = motion_candidates(
+        target, source, acfg, voxel, seed=min(group), far=far, rounds=rounds
+    )
+    if not candidates:
+        return None
+    src = np.concatenate([transform_points(T_world_scan[s], pre[s].fine_points) for s in group])
+    src_n = np.concatenate([pre[s].fine_normals @ T_world_scan[s][:3, :3].T for s in group])
+    stride = max(1, int(np.ceil(len(src) / max_source)))
+    src, src_n = src[::stride], src_n[::stride]
+    noise = float(np.median([pre[s].noise for s in group]))
+
+    def fit(M):
+        overlap, ratio, *_ = model_fit(
+            model, transform_points(M, src), src_n @ M[:3, :3].T, noise, voxel, acfg
+        )
+        return overlap, ratio
+
+    base = fit(np.eye(4))
+    floor = 0.5 * _share(target, source, np.eye(4), acfg, voxel)
+    reach = (acfg.ransac_distance_voxels + 1.0) * voxel
+    shares = [_share(target, source, M, acfg, voxel) for M in candidates]
+    order = np.argsort(-np.asarray(shares), kind="stable")
+    far_enough = [
+        candidates[k] for k in order
+        if shares[k] >= floor and _moved(candidates[k], source.points) > far
+    ]  # fmt: skip
+    for M in far_enough[:max_refined]:
+        for dist, iters in ((reach, 30), (voxel, 20)):
+            M = icp_point_to_plane(
+                src, src_n, model.points, model.normals, model.tree, M, dist, iters,
+                acfg.icp_min_normal_cos,
+            )  # fmt: skip
+        if _moved(M, src) <= far:
+            continue  # came back to the current placement
+        overlap, ratio = fit(M)
+        if not equally_good(overlap, ratio, base[0], base[1], len(src), acfg):
+            continue
+        if view_conflict(group, pre, T_world_scan, others, M, acfg) is not None:
+            continue
+        spread = 3.0 * np.sqrt(max(base[0] * (1 - base[0]), 1e-12) / len(src))
+        better = overlap > base[0] + spread and ratio <= base[1]
+        angle = float(np.degrees(Rotation.from_matrix(M[:3, :3]).magnitude()))
+        return Alternative(M, angle, overlap, ratio, better, base)
+    return None

@@ -1,0 +1,84 @@
+"""The union of the registered scans' fine levels in the world frame, and how well one
+scan's points fit it (shared by :mod:`mvreg.globalstage.verify` and
+:mod:`mvreg.globalstage.model_search`).
+
+Contract: :func:`scan_model` builds the :class:`ScanModel` of some scans under their poses;
+:func:`model_fit` scores world points with normals on it (overlap share of tight matches,
+median point-to-plane residual over the scans' noise, which model points matched);
+:func:`equally_good` says whether one pose's score is as good as another's within the
+sampling spread.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+from scipy.spatial import cKDTree
+
+from mvreg.config.align import AlignConfig
+from mvreg.geometry import transform_points
+
+
+@dataclass
+class ScanModel:
+    points: np.ndarray
+    normals: np.ndarray
+    owner: np.ndarray  # scan index of each model point
+    noise: np.ndarray  # that scan's noise estimate
+    tree: cKDTree
+
+
+def scan_model(pre, T_world_scan, members) -> ScanModel | None:
+    members = [k for k in members if k in T_world_scan]
+    if not members:
+        return None
+    pts, nrm, own, noi = [], [], [], []
+    for k in members:
+        T = T_world_scan[k]
+        pts.append(transform_points(T, pre[k].fine_points))
+        nrm.append(pre[k].fine_normals @ T[:3, :3].T)
+        own.append(np.full(len(pre[k].fine_points), k))
+        noi.append(np.full(len(pre[k].fine_points), pre[k].noise))
+    p = np.concatenate(pts)
+    return ScanModel(p, np.concatenate(nrm), np.concatenate(own), np.concatenate(noi), cKDTree(p))
+
+
+def match(model: ScanModel, pts, nrm, max_dist, min_cos):
+    """Nearest model point within ``max_dist`` with agreeing normal: (index or -1,
+    point-to-plane residual or inf)."""
+    d, nn = model.tree.query(pts, distance_upper_bound=max_dist)
+    idx = np.full(len(pts), -1, np.int64)
+    res = np.full(len(pts), np.inf)
+    found = np.flatnonzero(np.isfinite(d))
+    k = nn[found]
+    ok = np.einsum("ij,ij->i", model.normals[k], nrm[found]) >= min_cos
+    found, k = found[ok], k[ok]
+    idx[found] = k
+    res[found] = np.abs(np.einsum("ij,ij->i", model.normals[k], pts[found] - model.points[k]))
+    return idx, res
+
+
+def model_fit(model, pts, nrm, noise_s, voxel, acfg: AlignConfig):
+    """Overlap share, residual ratio, tight matches (mask), model indices, noise."""
+    idx, res = match(model, pts, nrm, acfg.score_distance_voxels * voxel, acfg.score_min_normal_cos)
+    has = idx >= 0
+    noise = 0.5 * (noise_s + (np.median(model.noise[idx[has]]) if np.any(has) else noise_s))
+    tight = res <= acfg.tight_residual_ratio * noise
+    overlap = float(np.mean(tight)) if len(pts) else 0.0
+    ratio = float(np.median(res[has]) / noise) if np.any(has) else float("inf")
+    return overlap, ratio, tight, idx, noise
+
+
+def equally_good(overlap, ratio, base_overlap, base_ratio, n, acfg: AlignConfig) -> bool:
+    """Whether a probed pose fits the model as well as the final one: residual within the
+    acceptance rule and no worse than the final one's by more than its sampling spread,
+    overlap share no lower than the final one's by more than its sampling spread (binomial
+    standard error, times 3, over the ``n`` probed points) plus a tenth (the probe
+    moves the border of the overlap)."""
+    if not ratio <= acfg.max_residual_ratio:
+        return False
+    spread = 3.0 * np.sqrt(max(base_overlap * (1 - base_overlap), 1e-12) / max(n, 1))
+    if overlap < base_overlap * 0.9 - spread:
+        return False
+    return ratio <= base_ratio * 1.25 + 3.0 / np.sqrt(max(n, 1))

@@ -128,7 +128,7 @@ def motion_candidates(
     return out
 
 
-def _share(target: FeatureModel, source: FeatureModel, M, acfg: AlignConfig, voxel) -> float:
+def share_on(target: FeatureModel, source: FeatureModel, M, acfg: AlignConfig, voxel) -> float:
     tree = feature_level_tree(target)
     limit = acfg.ransac_distance_voxels * voxel
     d, _ = tree.query(transform_points(M, source.points), distance_upper_bound=limit)
@@ -207,9 +207,9 @@ def _search(group, pre, T_world_scan, others, model, voxel, acfg, far_voxels, ma
         return overlap, ratio
 
     base = fit(np.eye(4))
-    floor = 0.5 * _share(target, source, np.eye(4), acfg, voxel)
+    floor = 0.5 * share_on(target, source, np.eye(4), acfg, voxel)
     reach = (acfg.ransac_distance_voxels + 1.0) * voxel
-    shares = [_share(target, source, M, acfg, voxel) for M in candidates]
+    shares = [share_on(target, source, M, acfg, voxel) for M in candidates]
     order = np.argsort(-np.asarray(shares), kind="stable")
     far_enough = [
         candidates[k] for k in order

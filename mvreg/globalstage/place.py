@@ -33,14 +33,20 @@ import numpy as np
 
 from mvreg.config.align import AlignConfig
 from mvreg.executor import single_threaded_blas
-from mvreg.geometry import transform_points
-from mvreg.globalstage.model_search import distant_alternative, feature_model, motion_candidates
+from mvreg.geometry import invert_transform, transform_points
+from mvreg.globalstage.model_search import (
+    distant_alternative,
+    feature_model,
+    motion_candidates,
+    share_on,
+)
 from mvreg.globalstage.scan_model import model_fit, scan_model
 from mvreg.globalstage.verify import (
     ScanVerification,
     degenerate_direction,
     free_space_conflicts,
 )
+from mvreg.pairwise.hypotheses import distinct_poses, scan_extent
 from mvreg.pairwise.icp import icp_point_to_plane
 
 
@@ -50,22 +56,42 @@ def place_leftovers(
     todo,
     voxel: float,
     acfg: AlignConfig,
-    max_tries: int = 4,
+    results=(),
+    max_tries: int = 6,
 ) -> dict[int, tuple[np.ndarray, ScanVerification]]:
-    """Scans of ``todo`` placed on the model of the verified scans (module docstring);
-    ``max_tries`` RANSAC candidates are refined per scan and round."""
+    """Scans of ``todo`` placed on the model of the verified scans (module docstring).
+
+    Candidate poses: RANSAC of the scan on the model, and every pose hypothesis of the
+    pair results (``results``: ``PairResult``, accepted or not; ``T_i_j`` and
+    ``stats["pose_hypotheses"]``) between the scan and a placed scan, carried into the
+    world frame by that scan's pose. The ``max_tries`` that bring the most of the scan's
+    feature points onto the model are refined per scan and round."""
     with single_threaded_blas():  # small SVDs and solves: threads only busy-wait
-        return _place_all(pre, T_verified, todo, voxel, acfg, max_tries)
+        return _place_all(pre, T_verified, todo, voxel, acfg, results, max_tries)
 
 
-def _place_all(pre, T_verified, todo, voxel, acfg, max_tries):
+def _pair_candidates(s, results, T_all) -> list[np.ndarray]:
+    """World poses of scan ``s`` from the hypotheses of its pairs with placed scans."""
+    out = []
+    for r in results:
+        if s not in (r.i, r.j) or (r.j if r.i == s else r.i) not in T_all:
+            continue
+        for T_i_j in [r.T_i_j, *r.stats.get("pose_hypotheses", [])]:
+            if r.i == s:  # p_s = T_i_j p_j
+                out.append(T_all[r.j] @ invert_transform(T_i_j))
+            else:
+                out.append(T_all[r.i] @ T_i_j)
+    return out
+
+
+def _place_all(pre, T_verified, todo, voxel, acfg, results, max_tries):
     placed: dict[int, tuple[np.ndarray, ScanVerification]] = {}
     T_all = dict(T_verified)
     todo = [s for s in todo if s not in T_all]
     while todo and len(T_all) >= 2:
         added = []
         for s in todo:
-            found = _place_one(s, pre, T_all, voxel, acfg, max_tries)
+            found = _place_one(s, pre, T_all, voxel, acfg, results, max_tries)
             if found is not None:
                 T_all[s] = found[0]
                 placed[s] = found
@@ -76,18 +102,23 @@ def _place_all(pre, T_verified, todo, voxel, acfg, max_tries):
     return placed
 
 
-def _place_one(s, pre, T_all, voxel, acfg, max_tries):
+def _place_one(s, pre, T_all, voxel, acfg, results, max_tries):
     members = sorted(T_all)
     target = feature_model(pre, T_all, members)
     source = feature_model(pre, {s: np.eye(4)}, [s])
     # No pose to stay away from: far = -1 keeps every match.
-    candidates = motion_candidates(target, source, acfg, voxel, seed=s, far=-1.0)
+    candidates = _pair_candidates(s, results, T_all)
+    candidates += motion_candidates(target, source, acfg, voxel, seed=s, far=-1.0)
     if not candidates:
         return None
+    shares = [share_on(target, source, C, acfg, voxel) for C in candidates]
+    order = np.argsort(-np.asarray(shares), kind="stable")
+    centre, radius = scan_extent(source.points)
+    best = distinct_poses([candidates[k] for k in order], 3 * voxel, centre, radius)
     model = scan_model(pre, T_all, members)
     scan = pre[s]
     reach = (acfg.ransac_distance_voxels + 1.0) * voxel
-    for C in candidates[:max_tries]:
+    for C in best[:max_tries]:
         T = C
         for dist, iters in ((reach, 50), (voxel, 30)):
             T = icp_point_to_plane(

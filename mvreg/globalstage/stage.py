@@ -154,7 +154,9 @@ class GlobalStage:
         if self.plan.model_search and out.solution is not None:
             verified = {s: T for s, T in out.T_world_scan.items() if s not in dropped}
             todo = [s for s in range(len(pre)) if s not in verified and _worth_placing(ver.get(s))]
-            for s, (T, v) in place_leftovers(pre, verified, todo, ctx.voxel, ctx.cfg.align).items():
+            for s, (T, v) in place_leftovers(
+                pre, verified, todo, ctx.voxel, ctx.cfg.align, results
+            ).items():
                 out.solution.T_world_scan[s] = T
                 ver[s] = v
                 dropped = [d for d in dropped if d != s]

@@ -50,7 +50,15 @@ Contract (pure functions on arrays, preprocessed scans and pair results; no I/O)
     within the acceptance rule and at most 1.25x the final one's plus its sampling spread,
     overlap share at least 0.9x the final one's minus three binomial standard errors):
     the data cannot tell the two poses apart. Only continuous freedoms are found this way;
-    a discrete symmetry (a knot turned 120 or 180 deg onto itself) is not detected.
+    a discrete symmetry (a knot turned 120 or 180 deg onto itself) is found by
+    :func:`search_alternatives` (below).
+
+With ``discrete``, :func:`search_alternatives` then searches every verified scan, and
+every group of verified scans that agree with each other but hang on the rest by one
+agreeing pair (:func:`bridge_groups`, moved as one rigid body), against the model of the
+others for a second, distant pose (:mod:`mvreg.globalstage.model_search`): one that fits
+as well makes the scan ``"undetermined"`` (``degenerate_dof`` names the discrete turn),
+one that fits better makes it ``"unverified"``.
 
 Every threshold comes from the data (feature voxel, the scans' noise estimates, point
 counts) or from the pairwise acceptance rule already in the configuration; none is fitted
@@ -58,7 +66,10 @@ to an object.
 
 :func:`verify_and_resolve` is the pipeline loop: scans that are not verified leave the
 registered set, the rest is solved again without the pairs touching them (so a wrong pair
-cannot drag the others through the gauge), and verified again (a few rounds at most).
+cannot drag the others through the gauge), and verified again (a few rounds at most); the
+search for second poses runs once, when a round drops nothing else.
+:mod:`mvreg.globalstage.place` then tries to place the scans left out on the model of the
+verified ones.
 """
 
 from __future__ import annotations

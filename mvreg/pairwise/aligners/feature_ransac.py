@@ -71,6 +71,9 @@ class FeatureRansacAligner(BaseAligner):
         T, stats = ransac(pre_i, pre_j, cfg, seed, self.feature_basis, scales.voxel)
         stats["seconds_ransac"] = time.perf_counter() - start
         candidates = stats.pop("candidates", [T])[: cfg.ransac_hypotheses_tried]
+        # Kept for later stages (placing a scan on the model of verified ones): a pair too
+        # small to accept may still hold the right pose among its hypotheses.
+        stats["pose_hypotheses"] = list(candidates)
         reason, scores = "", None
         if not stats["ok"]:
             reason = "feature matching found no consistent alignment"

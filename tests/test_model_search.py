@@ -110,3 +110,33 @@ def test_placement_needs_two_supporting_scans(builtin_set):
 
     pre, truth, voxel = builtin_set
     assert place_leftovers(pre, {0: truth[0]}, [1], voxel, AlignConfig()) == {}
+
+
+@pytest.mark.shared
+def test_self_symmetry_of_a_knot(tmp_path, shared_data):
+    """The quadknot maps onto itself turned 120 deg about its axis: the registered scans
+    (at the truth) map onto themselves by such a turn."""
+    from data_synth import synthesize_scans
+    from mvreg.globalstage.model_search import self_symmetry
+    from mvreg.globalstage.scan_model import scan_model
+
+    folder = tmp_path / "scans"
+    synthesize_scans(
+        shared_data / "meshes" / "quadknot.obj", folder, views=10, noise=0.002, seed=0,
+        random_frames=True, points_per_scan=3000,
+    )  # fmt: skip
+    pre, truth, voxel = _preprocessed(folder)
+    sym = self_symmetry(pre, truth, scan_model(pre, truth, sorted(truth)), voxel, AlignConfig())
+    assert sym is not None, "no symmetry found"
+    assert min(abs(sym.angle_deg - a) for a in (120.0, 180.0)) < 3.0, sym.angle_deg
+    assert sym.overlap >= 0.5
+
+
+def test_no_self_symmetry_without_one(builtin_set):
+    from mvreg.globalstage.model_search import self_symmetry
+    from mvreg.globalstage.scan_model import scan_model
+
+    pre, truth, voxel = builtin_set
+    model = scan_model(pre, truth, sorted(truth))
+    assert self_symmetry(pre, truth, model, voxel, AlignConfig()) is None
+

@@ -37,6 +37,7 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 
 import numpy as np
+from scipy.spatial import cKDTree
 from scipy.spatial.transform import Rotation
 
 from mvreg.config.align import AlignConfig
@@ -232,4 +233,75 @@ def _search(group, pre, T_world_scan, others, model, voxel, acfg, far_voxels, ma
         better = overlap > base[0] + spread and ratio <= base[1]
         angle = float(np.degrees(Rotation.from_matrix(M[:3, :3]).magnitude()))
         return Alternative(M, angle, overlap, ratio, better, base)
+    return None
+
+
+def _self_matches(union: FeatureModel, acfg: AlignConfig, far: float, max_points: int, k=12):
+    """Each sampled point of ``union`` matched to its nearest descriptor among the points
+    more than ``far`` from it (so not to itself or its own neighbourhood): (idx_i, idx_j)."""
+    stride = max(1, len(union.features) // 4000)
+    basis = FeatureBasis.fit([union.features[::stride]], acfg.feature_dims)
+    reduced = (union.features - basis.mean) @ basis.basis
+    src = np.unique(np.linspace(0, len(reduced) - 1, max_points).astype(np.int64))
+    _, nn = cKDTree(reduced).query(reduced[src], k=min(k, len(reduced)))
+    apart = np.linalg.norm(union.points[nn] - union.points[src][:, None, :], axis=2) > far
+    has = apart.any(axis=1)
+    first = np.argmax(apart, axis=1)
+    return nn[has, first[has]].astype(np.int64), src[has]
+
+
+def self_symmetry(
+    pre,
+    T_world_scan: dict[int, np.ndarray],
+    model: ScanModel,
+    voxel: float,
+    acfg: AlignConfig,
+    far_voxels: float = 3.0,
+    max_points: int = 1500,
+    max_refined: int = 4,
+    min_overlap: float = 0.5,
+) -> Alternative | None:
+    """A world motion, far from the identity, that maps the registered scans (all of
+    ``T_world_scan``; ``model`` their fine level) onto themselves: at least
+    ``min_overlap`` of their points land on their surface within the acceptance rule's
+    residual, and no view contradicts the moved scans more than the scans in place
+    (:func:`view_conflict`). An object with such a symmetry lets each scan take any of
+    its symmetric places where the others do not cover the copy; or None."""
+    with single_threaded_blas():
+        members = sorted(T_world_scan)
+        union = feature_model(pre, T_world_scan, members)
+        far = far_voxels * voxel
+        # A symmetry moves points by a good part of the object's size: matches between
+        # points closer than a fifth of its rms radius only find the identity's basin.
+        q = union.points - union.points.mean(axis=0)
+        apart = max(far, 0.2 * float(np.sqrt(np.mean(np.sum(q * q, axis=1)))))
+        matches = _self_matches(union, acfg, apart, max_points)
+        if len(matches[0]) < 3:
+            return None
+        _, stats = ransac_numpy(union, union, acfg, 0, None, voxel, matches=matches)
+        candidates = [M for M in stats.get("candidates", []) if _moved(M, union.points) > far]
+        shares = [share_on(union, union, M, acfg, voxel) for M in candidates]
+        order = np.argsort(-np.asarray(shares), kind="stable")
+        stride = max(1, len(model.points) // max_points)
+        src, src_n = model.points[::stride], model.normals[::stride]
+        noise = float(np.median(model.noise))
+        reach = (acfg.ransac_distance_voxels + 1.0) * voxel
+        for k in order[:max_refined]:
+            M = candidates[k]
+            for dist, iters in ((reach, 30), (voxel, 20)):
+                M = icp_point_to_plane(
+                    src, src_n, model.points, model.normals, model.tree, M, dist, iters,
+                    acfg.icp_min_normal_cos,
+                )  # fmt: skip
+            if _moved(M, src) <= far:
+                continue
+            overlap, ratio, *_ = model_fit(
+                model, transform_points(M, src), src_n @ M[:3, :3].T, noise, voxel, acfg
+            )
+            if overlap < min_overlap or not ratio <= acfg.max_residual_ratio:
+                continue
+            if view_conflict(members, pre, T_world_scan, members, M, acfg) is not None:
+                continue
+            angle = float(np.degrees(Rotation.from_matrix(M[:3, :3]).magnitude()))
+            return Alternative(M, angle, overlap, ratio, False, (1.0, 0.0))
     return None

@@ -81,7 +81,7 @@ import numpy as np
 
 from mvreg.config.align import AlignConfig
 from mvreg.geometry import invert_transform, rotation_from_vector, transform_points
-from mvreg.globalstage.model_search import distant_alternative
+from mvreg.globalstage.model_search import distant_alternative, self_symmetry
 from mvreg.globalstage.robust import pair_disagreements
 from mvreg.globalstage.scan_model import ScanModel, equally_good, model_fit, scan_model
 from mvreg.pairwise.icp import icp_point_to_plane
@@ -384,15 +384,36 @@ def _mark(v: ScanVerification, alt, group: str) -> None:
     v.reason = (f"moved as one with {group}: " if group else "") + alt.describe()
 
 
+def _mark_symmetric(out, verified, sym) -> None:
+    turn = f"{sym.angle_deg:.0f} deg"
+    for s in verified:
+        v = out[s]
+        v.status, v.evidence = "undetermined", ""
+        v.degenerate_dof = f"a symmetry of the registered scans: a turn of {turn}"
+        v.reason = (
+            f"the registered scans map onto themselves turned {turn} (overlap "
+            f"{sym.overlap:.2f}): which symmetric place each scan takes is not fixed by the data"
+        )
+
+
 def search_alternatives(out, graph, pre, T_world_scan, voxel, acfg) -> None:
-    """Search every verified scan, then every group of verified scans that agree with each
-    other but hang on the rest by one pair (:func:`bridge_groups`, moved as one rigid
-    body), against the model of the others for a second pose
+    """First the verified scans as a whole for a symmetry (a motion mapping them onto
+    themselves: :func:`mvreg.globalstage.model_search.self_symmetry`; then every one is
+    ``undetermined``); else every verified scan, then every group of verified scans that
+    agree with each other but hang on the rest by one pair (:func:`bridge_groups`, moved
+    as one rigid body), against the model of the others for a second pose
     (:func:`mvreg.globalstage.model_search.distant_alternative`); mark those that have one
     ``undetermined`` (as good) or ``unverified`` (better). ``out``: {scan:
     ScanVerification}, changed in place; ``graph``: the agreeing pairs."""
     names = [p.name for p in pre]
     scans = sorted(T_world_scan)
+    verified = {s: T_world_scan[s] for s in scans if out[s].status == "verified"}
+    if len(verified) >= 3:
+        whole = scan_model(pre, verified, sorted(verified))
+        sym = self_symmetry(pre, verified, whole, voxel, acfg)
+        if sym is not None:
+            _mark_symmetric(out, verified, sym)
+            return
     for s in scans:
         others = [k for k in scans if k != s]
         if out[s].status != "verified" or len(others) < 2:

@@ -110,15 +110,20 @@ def ransac_numpy(
     basis: FeatureBasis | None,
     voxel: float,
     keep_matches: Callable[[np.ndarray, np.ndarray], np.ndarray] | None = None,
+    matches: tuple[np.ndarray, np.ndarray] | None = None,
 ) -> tuple[np.ndarray, dict]:
     """Best T_i_j from feature matches; (T, stats). Identity with stats["ok"]=False if none.
 
     ``keep_matches``: optional filter of the matches, (points of j, points of i) -> bool
     mask (e.g. to drop the matches a known pose explains and look for another one).
+    ``matches``: (idx_i, idx_j) to use instead of the mutual descriptor matches.
     """
-    if basis is None:
-        basis = FeatureBasis.fit([pre_i.features, pre_j.features], cfg.feature_dims)
-    idx_i, idx_j = feature_matches(pre_i, pre_j, basis, cfg.feature_match_eps)
+    if matches is not None:
+        idx_i, idx_j = matches
+    else:
+        if basis is None:
+            basis = FeatureBasis.fit([pre_i.features, pre_j.features], cfg.feature_dims)
+        idx_i, idx_j = feature_matches(pre_i, pre_j, basis, cfg.feature_match_eps)
     if keep_matches is not None:
         mask = keep_matches(pre_j.points[idx_j], pre_i.points[idx_i])
         idx_i, idx_j = idx_i[mask], idx_j[mask]

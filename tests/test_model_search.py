@@ -139,4 +139,3 @@ def test_no_self_symmetry_without_one(builtin_set):
     pre, truth, voxel = builtin_set
     model = scan_model(pre, truth, sorted(truth))
     assert self_symmetry(pre, truth, model, voxel, AlignConfig()) is None
-

@@ -189,6 +189,8 @@ def _search(group, pre, T_world_scan, others, model, voxel, acfg, far_voxels, ma
     group = list(group)
     target = feature_model(pre, T_world_scan, others)
     source = feature_model(pre, T_world_scan, group)
+    if len(target.features) < 3 or len(source.features) < 3:
+        return None  # no descriptors to match (scans preprocessed without them)
     far = far_voxels * voxel
     candidates = motion_candidates(
         target, source, acfg, voxel, seed=min(group), far=far, rounds=rounds
@@ -270,6 +272,8 @@ def self_symmetry(
     with single_threaded_blas():
         members = sorted(T_world_scan)
         union = feature_model(pre, T_world_scan, members)
+        if len(union.features) < 3:
+            return None
         far = far_voxels * voxel
         # A symmetry moves points by a good part of the object's size: matches between
         # points closer than a fifth of its rms radius only find the identity's basin.

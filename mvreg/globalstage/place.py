@@ -106,6 +106,8 @@ def _place_one(s, pre, T_all, voxel, acfg, results, max_tries):
     members = sorted(T_all)
     target = feature_model(pre, T_all, members)
     source = feature_model(pre, {s: np.eye(4)}, [s])
+    if len(source.features) < 3 or len(target.features) < 3:
+        return None
     # No pose to stay away from: far = -1 keeps every match.
     candidates = _pair_candidates(s, results, T_all)
     candidates += motion_candidates(target, source, acfg, voxel, seed=s, far=-1.0)

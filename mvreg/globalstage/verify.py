@@ -577,7 +577,9 @@ def verify_and_resolve(
     def check(search: bool, ver: dict | None = None) -> tuple[dict, dict]:
         T = {s: T for s, T in solved.T_world_scan.items() if s not in dropped}
         if ver is None:
-            ver = verify_scans(pre, results, solved.pair_weight, T, voxel, acfg, agree_voxels)
+            ver = verify_scans(
+                pre, results, solved.pair_weight, T, voxel, acfg, agree_voxels, discrete=False
+            )
         if search:
             graph = agreeing_graph(pre, results, solved.pair_weight, T, voxel, agree_voxels)
             search_alternatives(ver, graph, pre, T, voxel, acfg)

@@ -37,7 +37,7 @@ def test_repolish_finishes_a_high_noise_spectral_start():
 
 def test_balanced_rho_starts_at_power_step_scale_and_certifies():
     problem, truth = make_problem(150, d=3, noise=0.16, seed=2)
-    res = solve(problem, max_iter=50)
+    res = solve(problem, max_iter=50, reg_admm={"staircase_rounds": 0})  # REG-ADMM alone
     rho0 = res.stats["lambda_max"] / 150
     assert res.rho_history[0]["rho"] == pytest.approx(rho0, rel=1e-12)
     assert "residual balancing" in res.rho_history[0]["reason"]
@@ -50,13 +50,47 @@ def test_balanced_rho_starts_at_power_step_scale_and_certifies():
 
 def test_uncertified_result_reports_lower_bound_and_gap():
     problem, _ = make_problem(150, d=3, noise=0.16, seed=2)
-    res = solve(problem, max_iter=2)
+    res = solve(problem, max_iter=2, reg_admm={"staircase_rounds": 0})
     c = res.certificate
     assert not c.certified
     assert c.lower_bound == pytest.approx(c.objective - c.suboptimality_bound)
     assert c.lower_bound < c.objective and c.relative_gap > 1e-6
     # The global optimum (certified above) lies between the bound and this objective.
-    best = solve(problem, max_iter=50)
+    best = solve(problem)
     assert best.certified and c.lower_bound <= best.objective <= c.objective * (1 + 1e-9)
     text = res.summary()
     assert "certified NO" in text and "relative gap" in text and "optimum >=" in text
+
+
+def test_staircase_escapes_a_rejected_start_and_certifies():
+    # 16% noise: the polished start is rejected by the certificate (negative curvature);
+    # one staircase step along that direction reaches the certified optimum, no ADMM needed.
+    problem, truth = make_problem(150, d=3, noise=0.16, seed=2)
+    res = solve(problem)
+    steps = res.stats["staircase"]
+    assert res.certified and res.iterations == 0
+    assert steps and steps[0]["min_eigenvalue"] < 0
+    assert steps[-1]["certified"] and steps[-1]["objective"] < steps[0]["from_objective"]
+    assert res.certificate.objective == pytest.approx(steps[-1]["objective"], rel=1e-9)
+    plain = solve(problem, max_iter=50, reg_admm={"staircase_rounds": 0})
+    assert plain.certified  # REG-ADMM reaches the same optimum, after iterating
+    assert res.objective == pytest.approx(plain.objective, rel=1e-9)
+    err = rotation_errors_deg(res.rotations, truth.rotations)
+    assert np.median(err) < 8.0
+
+
+@pytest.mark.parametrize("method", ["dense", "matrix-free"])
+def test_fast_path_does_not_depend_on_the_new_policies(method):
+    # A certified start: 0 iterations, and none of rho policy / staircase / dual start is
+    # used, so the result is the same bit for bit.
+    problem, truth = make_problem(60, d=3, noise=0.02, seed=5)
+    a = solve(problem, method=method)
+    b = solve(
+        problem,
+        method=method,
+        reg_admm={"rho_policy": "theorem4", "staircase_rounds": 0, "dual_start": "multipliers"},
+    )
+    assert a.certified and a.iterations == 0 and a.stats["staircase"] == []
+    assert np.array_equal(a.rotations, b.rotations)
+    assert np.array_equal(a.translations, b.translations)
+    assert np.median(rotation_errors_deg(a.rotations, truth.rotations)) < 1.0

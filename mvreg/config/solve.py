@@ -62,6 +62,12 @@ class RegAdmmOptions(IterativeOptions):
         description="Lambda when iterating: 0 (paper 000) or the multipliers -bd(C G) of "
         "the start (Prop. 2)",
     )
+    staircase_rounds: int = Field(
+        3,
+        ge=0,
+        description="Riemannian-staircase steps from a point whose certificate fails with "
+        "negative curvature (needs polish)",
+    )
     balance_window: int = Field(
         5, ge=1, description="rho_policy='balanced': residuals compared every k iterations"
     )

@@ -50,8 +50,8 @@ from mvreg.solver.blocks import (
     round_to_rotations,
     x_from_rotations,
 )
-from mvreg.solver.certificate import certify, multipliers
-from mvreg.solver.polish import KKT_TOL, polish, repolish
+from mvreg.solver.certificate import multipliers
+from mvreg.solver.checkpoint import BestPoint
 
 __all__ = ["AdmmState", "run", "run_reg_admm", "state_from_rotations", "theorem4_rho"]
 
@@ -175,6 +175,10 @@ def rotations_from_state(state: AdmmState, d: int, allow_reflections: bool) -> n
     return round_to_rotations(state.U * np.sqrt(np.maximum(state.s, 0.0)), d, allow_reflections)
 
 
+def _rounded(state: AdmmState, ctx: SolverContext) -> np.ndarray:
+    return rotations_from_state(state, ctx.operator.d, ctx.allow_reflections)
+
+
 def _checkpoints(max_iter: int) -> set[int]:
     """Iterations after which the rounded iterate is polished and certified: 1, 2, 5, 10, ..."""
     pts, k = set(), 1
@@ -185,82 +189,6 @@ def _checkpoints(max_iter: int) -> set[int]:
         k *= 10
     pts.add(max_iter)
     return pts
-
-
-class _BestPoint:
-    """The best Newton-polished rounded iterate seen so far and its certificate.
-
-    ``check(k, state)`` polishes the rounded iterate; if that reaches a lower cost than
-    before it is certified and kept. Returns True once a kept point is certified.
-    """
-
-    def __init__(self, ctx: SolverContext):
-        self.ctx = ctx
-        self.lam_max = ctx.spectrum.largest
-        self.R = None
-        self.f = np.inf
-        self.cert = None
-        self.polish = None
-        self.at = None
-        self.t_polish = 0.0
-        self.t_cert = 0.0
-
-    @property
-    def certified(self) -> bool:
-        return self.cert is not None and self.cert.certified
-
-    def _polish(self, R):
-        t0 = time.perf_counter()
-        out = polish(self.ctx.operator, R, self.lam_max, self.ctx.allow_reflections)
-        self.t_polish += time.perf_counter() - t0
-        return out
-
-    def _repolish(self, R, stats):
-        t0 = time.perf_counter()
-        c = self.ctx
-        out = repolish(c.operator, R, stats, self.lam_max, c.allow_reflections)
-        self.t_polish += time.perf_counter() - t0
-        return out
-
-    def _certify(self, R, inverse):
-        t0 = time.perf_counter()
-        c = self.ctx
-        cert = (
-            certify(c.operator, R, self.lam_max, c.dense, c.gap_tol, c.seed, inverse=inverse)
-            if c.certify
-            else None
-        )
-        self.t_cert += time.perf_counter() - t0
-        return cert
-
-    def check(self, k: int, state: AdmmState) -> bool:
-        R = rotations_from_state(state, self.ctx.operator.d, self.ctx.allow_reflections)
-        Rp, pst = self._polish(R)
-        if pst.objective >= self.f - 1e-12 * max(abs(self.f), 1e-300):
-            return False  # same stationary point as before: already checked
-        cert = self._certify(Rp, pst.inverse)
-        if not (cert is not None and cert.certified) and pst.kkt_residual > KKT_TOL:
-            # Polish stopped short of a KKT point (polish.repolish): finish, then certify.
-            Rp, pst = self._repolish(Rp, pst)
-            cert = self._certify(Rp, pst.inverse)
-        pst.inverse = None  # free the factorization
-        self.R, self.f, self.cert, self.polish, self.at = Rp, pst.objective, cert, pst, k
-        return self.certified
-
-    def finish(self, run: AdmmRun, polishing: bool) -> None:
-        """After the iterations: polish the last iterate (when polishing) and certify the
-        best point unless a checkpoint already did."""
-        R_final = rotations_from_state(run.state, self.ctx.operator.d, self.ctx.allow_reflections)
-        if polishing:
-            Rp, pst = self._repolish(*self._polish(R_final))
-            if pst.objective < self.f:
-                self.R, self.f, self.polish, self.at = Rp, pst.objective, pst, run.iterations
-                self.cert = None
-        elif self.R is None:
-            self.R, self.at = R_final, run.iterations
-        if self.R is R_final or self.cert is None:
-            inv = self.polish.inverse if self.polish is not None else None
-            self.cert = self._certify(self.R, inv)
 
 
 def _policy(ctx: SolverContext) -> RhoPolicy:
@@ -292,14 +220,18 @@ def run(ctx: SolverContext) -> SolverRun:
     policy = _policy(ctx)
     rho0 = policy.rho
     state = state_from_rotations(ctx.start, rho=rho0)
-    best = _BestPoint(ctx)
+    best = BestPoint(ctx)
     t0 = time.perf_counter()
-    # Checkpoint 0: the start itself; REG-ADMM iterates only when it is not certified.
-    if o.polish and best.check(0, state):
+    # Checkpoint 0: the start itself. When the certificate rejects it with a direction of
+    # negative curvature, staircase steps first; REG-ADMM iterates only when neither the
+    # start nor an escape from it is certified (from the cheapest point found).
+    if o.polish and (best.check(0, _rounded(state, ctx)) or best.escape(o.staircase_rounds)):
         admm = AdmmRun(state=state)
     else:
+        if best.escapes:
+            state = state_from_rotations(best.R, rho=rho0)
         if o.dual_start == "multipliers":
-            X = x_from_rotations(ctx.start)
+            X = x_from_rotations(best.R if best.escapes else ctx.start)
             state.lam = multipliers(X, op.matvec(X), op.d)[0]
         admm = run_reg_admm(
             op,
@@ -308,15 +240,17 @@ def run(ctx: SolverContext) -> SolverRun:
             max_iter=o.max_iter,
             tol=o.tol,
             policy=policy,
-            checkpoint=best.check if o.polish else None,
+            checkpoint=(lambda k, st: best.check(k, _rounded(st, ctx))) if o.polish else None,
             checkpoints=_checkpoints(o.max_iter) if o.polish else None,
             callback=ctx.callback,
             lobpcg_steps=o.lobpcg_steps,
         )
-    t_iter = time.perf_counter() - t0 - best.t_polish - best.t_cert
+    t_iter = time.perf_counter() - t0 - best.t_polish - best.t_cert - best.t_escape
     certified_early = best.certified
     if not certified_early:
-        best.finish(admm, o.polish)
+        best.finish(_rounded(admm.state, ctx), admm.iterations, o.polish)
+        if o.polish:
+            best.escape(o.staircase_rounds)
     pst = best.polish
     if pst is not None:
         pst.inverse = None  # free the factorization
@@ -329,6 +263,7 @@ def run(ctx: SolverContext) -> SolverRun:
         stats={
             "residuals_converged": admm.residuals_converged,
             "stopped_by": "certificate" if certified_early else stopped,
+            "staircase": best.escapes,
             "polished_at_iteration": best.at,
             "newton_steps": None if pst is None else pst.newton_steps,
             "newton_cg_steps": None if pst is None else pst.cg_steps,
@@ -340,5 +275,10 @@ def run(ctx: SolverContext) -> SolverRun:
         rho_final=policy.rho,
         rho_history=[{"iteration": 0, "rho": rho0, "reason": _RHO_REASONS[policy.kind]}]
         + admm.rho_changes,
-        timings={"iterations": t_iter, "polish": best.t_polish, "certificate": best.t_cert},
+        timings={
+            "iterations": t_iter,
+            "polish": best.t_polish,
+            "certificate": best.t_cert,
+            "staircase": best.t_escape,
+        },
     )

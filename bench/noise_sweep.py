@@ -156,6 +156,9 @@ def main(argv=None) -> None:
     ap.add_argument("--noises", type=float, nargs="*", default=NOISES)
     ap.add_argument("--graphs", nargs="*", default=["geometric", "random"])
     ap.add_argument("--shonan", action="store_true", help="also GTSAM Shonan averaging")
+    ap.add_argument(
+        "--shonan-sizes", type=int, nargs="*", default=[1000], help="M at which Shonan runs"
+    )
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--timeout", type=float, default=900.0, help="seconds per case")
     ap.add_argument("--out", type=Path, default=ROOT / "docs" / "benchmarks")
@@ -171,9 +174,9 @@ def main(argv=None) -> None:
         return
     started = datetime.datetime.now(datetime.UTC)
     rows = []
-    kinds = ["mvreg", "shonan"] if a.shonan else ["mvreg"]
     for graph in a.graphs:
         for m in a.sizes:
+            kinds = ["mvreg", "shonan"] if a.shonan and m in a.shonan_sizes else ["mvreg"]
             for noise in a.noises:
                 for kind in kinds:
                     rows.append(run_case(kind, m, noise, graph, a.seed, a.timeout))

@@ -10,10 +10,10 @@ diagonal D = I - bd(G) - Lambda/rho. The dense variant forms A and uses an exact
 eigensolver; the matrix-free one runs ``lobpcg_steps`` LOBPCG steps on the operator per
 iteration, warm started from U.
 
-rho = "auto": Theorem 4's value lambda_{d+1}(C) / (2 M sqrt(d)) (feasible H0, Lambda0 = 0),
-doubled whenever the primal residual has not fallen below 0.99 x its best for ``stall_window``
-iterations (the non-attenuating oscillation of paper section 2.6), up to lambda_max(C).
-Every change is recorded with its reason (``SolverRun.rho_history``). A number fixes rho.
+rho = "auto": ``rho_policy`` "balanced" (lambda_max(C) / M, then residual balancing) or
+"theorem4" (paper 000 Theorem 4's bound, doubled when the primal residual stalls): see
+admm_rho.py. Every change is recorded with its reason (``SolverRun.rho_history``). A
+number fixes rho. ``dual_start`` "multipliers" starts Lambda at -bd(C G) of the start.
 
 Stopping: the relative primal residual ||bd(G) - I||_F / sqrt(Md) and the relative dual
 residual ||H^{k+1} - H^k||_F / ||H^k||_F both below ``tol``, or ``max_iter``; or, with
@@ -21,10 +21,16 @@ residual ||H^{k+1} - H^k||_F / ||H^k||_F both below ``tol``, or ``max_iter``; or
 ..., and max_iter) when the rounded iterate, Newton-polished to a KKT point, is certified
 globally optimal. Without ``polish`` the run is plain eq. (7) (paper experiments).
 
+Checkpoints (checkpoint.BestPoint): the rounded iterate is Newton-polished (further
+passes when one stops short of a KKT point and the certificate fails) and certified; a
+point rejected with negative curvature is escaped from by Riemannian-staircase steps
+(staircase.py, ``staircase_rounds``) at checkpoint 0 and after the iterations.
+
 Registry entry ``run(ctx)`` (see mvreg.solver.base): options ``solve.reg_admm``
-(RegAdmmOptions: rho, max_iter, tol, polish, lobpcg_steps, stall_window). Returns checked
-rotations: the best polished point (lowest cost) over the checkpoints and the last iterate,
-with its certificate; or, without ``polish``, the rounded last iterate, certified.
+(RegAdmmOptions: rho, rho_policy, dual_start, balance_window, stall_window,
+staircase_rounds, max_iter, tol, polish, lobpcg_steps). Returns checked rotations: the best
+polished point (lowest cost) over the checkpoints, the escapes and the last iterate, with
+its certificate; or, without ``polish``, the rounded last iterate, certified.
 Iteration records: objective Tr(C G) in the problem's units, the relative primal and dual
 residuals, rho. Design notes: docs/design/solver.md.
 """

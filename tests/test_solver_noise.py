@@ -94,3 +94,20 @@ def test_fast_path_does_not_depend_on_the_new_policies(method):
     assert np.array_equal(a.rotations, b.rotations)
     assert np.array_equal(a.translations, b.translations)
     assert np.median(rotation_errors_deg(a.rotations, truth.rotations)) < 1.0
+
+
+def test_rho_policy_balancing_and_stall_rules():
+    from mvreg.solver.admm_rho import RhoPolicy, balanced_rho, theorem4_rho
+
+    assert balanced_rho(80.0, 1000) == pytest.approx(0.08)
+    assert theorem4_rho(1.0, 1000, 3) == pytest.approx(1.0 / (2 * 1000 * np.sqrt(3)))
+    p = RhoPolicy(1.0, "balanced", window=5, rho_min=0.01, rho_max=1.0)
+    assert p.update(3, 1e-3, 1.0) == 1.0  # only every `window` iterations
+    assert p.update(5, 1e-3, 1.0) == pytest.approx(10**-1.0)  # sqrt(1e-3), capped at 10x
+    assert p.update(10, 1.0, 1e-4) == pytest.approx(1.0)  # raised back, up to rho_max only
+    assert p.update(15, 0.5, 0.4) == pytest.approx(1.0)  # within the ratio: unchanged
+    assert [c["iteration"] for c in p.changes] == [5, 10]
+    t = RhoPolicy(0.1, "theorem4", window=3, rho_max=0.3)
+    rhos = [t.update(k, 1.0, 1.0) for k in range(1, 12)]  # a stalled primal residual
+    assert rhos[-1] == pytest.approx(0.3) and min(rhos) == pytest.approx(0.1)
+    assert all("stalled" in c["reason"] for c in t.changes)

@@ -124,9 +124,9 @@ def test_admm_fixed_points_are_kkt_points():
     assert diff.max() < 1e-3
 
 
-def test_rho_auto_is_theorem4_and_recorded():
+def test_rho_policy_theorem4_is_theorem4_and_recorded():
     problem, _ = make_problem(30, d=3, noise=0.3, seed=2)
-    res = solve(problem, max_iter=60)
+    res = solve(problem, max_iter=60, reg_admm={"rho_policy": "theorem4"})
     first = res.rho_history[0]
     lam = res.stats["lambda_d_plus_1"]
     assert first["reason"] == "Theorem 4 bound"

@@ -51,7 +51,26 @@ class SpectralOptions(SolverOptions):
 class RegAdmmOptions(IterativeOptions):
     """REG-ADMM (mvreg.solver.reg_admm)."""
 
-    rho: Rho = Field("auto", description="'auto' (Theorem 4, raised on oscillation) or > 0")
+    rho: Rho = Field("auto", description="'auto' (see rho_policy) or a fixed rho > 0")
+    rho_policy: Literal["balanced", "theorem4"] = Field(
+        "balanced",
+        description="rho='auto': 'balanced' starts at lambda_max(C)/M and balances the "
+        "residuals; 'theorem4' starts at Theorem 4's bound and doubles on stalls",
+    )
+    dual_start: Literal["zero", "multipliers"] = Field(
+        "zero",
+        description="Lambda when iterating: 0 (paper 000) or the multipliers -bd(C G) of "
+        "the start (Prop. 2)",
+    )
+    staircase_rounds: int = Field(
+        3,
+        ge=0,
+        description="Riemannian-staircase steps from a point whose certificate fails with "
+        "negative curvature (needs polish)",
+    )
+    balance_window: int = Field(
+        5, ge=1, description="rho_policy='balanced': residuals compared every k iterations"
+    )
     polish: bool = Field(
         True,
         description="Newton-polish and certify rounded iterates at checkpoints, stop once "
@@ -59,7 +78,7 @@ class RegAdmmOptions(IterativeOptions):
     )
     lobpcg_steps: int = Field(4, ge=1, description="warm-started LOBPCG steps per iteration")
     stall_window: int = Field(
-        10, ge=1, description="rho='auto' doubles rho after this many iterations without progress"
+        10, ge=1, description="rho_policy='theorem4' doubles rho after this many stalled iterations"
     )
 
 

@@ -84,3 +84,9 @@ def block_apply(blocks: np.ndarray, V: np.ndarray) -> np.ndarray:
     """Apply a block-diagonal matrix given as (M, d, d) blocks to V (n, r)."""
     m, d, _ = blocks.shape
     return np.einsum("mab,mbr->mar", blocks, V.reshape(m, d, -1)).reshape(m * d, -1)
+
+
+def diag_blocks_of_cg(U: np.ndarray, s: np.ndarray, CU: np.ndarray, d: int) -> np.ndarray:
+    """Diagonal d x d blocks of C G for G = U diag(s) U^T, given CU = C U: (M, d, d)."""
+    r = U.shape[1]
+    return np.einsum("mar,r,mbr->mab", CU.reshape(-1, d, r), s, U.reshape(-1, d, r))

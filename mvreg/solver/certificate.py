@@ -42,6 +42,9 @@ class Certificate:
         whole space (from min_eigenvalue and the KKT residual).
     suboptimality_bound: f(solution) - f(optimum) <= this, in the problem's units.
     relative_gap: suboptimality_bound / max(objective, tiny).
+    lower_bound: objective - suboptimality_bound: no rotations reach a lower REG cost (the
+        dual bound of Lemma 2 / the C-SDP). Reported whether certified or not, so that an
+        uncertified answer still says how far from optimal it can be at most.
     eigen_residual: LOBPCG residual norm of the computed eigenpair (accuracy of mu).
     """
 
@@ -54,6 +57,7 @@ class Certificate:
     relative_gap: float
     eigen_residual: float
     tolerance: float
+    lower_bound: float = float("nan")
 
     def to_dict(self) -> dict:
         return {k: (bool(v) if isinstance(v, np.bool_) else v) for k, v in asdict(self).items()}
@@ -215,4 +219,5 @@ def certify(
         relative_gap=float(rel),
         eigen_residual=eig_res,
         tolerance=gap_tol,
+        lower_bound=objective - bound,
     )

@@ -10,10 +10,10 @@ diagonal D = I - bd(G) - Lambda/rho. The dense variant forms A and uses an exact
 eigensolver; the matrix-free one runs ``lobpcg_steps`` LOBPCG steps on the operator per
 iteration, warm started from U.
 
-rho = "auto": Theorem 4's value lambda_{d+1}(C) / (2 M sqrt(d)) (feasible H0, Lambda0 = 0),
-doubled whenever the primal residual has not fallen below 0.99 x its best for ``stall_window``
-iterations (the non-attenuating oscillation of paper section 2.6), up to lambda_max(C).
-Every change is recorded with its reason (``SolverRun.rho_history``). A number fixes rho.
+rho = "auto": ``rho_policy`` "balanced" (lambda_max(C) / M, then residual balancing) or
+"theorem4" (paper 000 Theorem 4's bound, doubled when the primal residual stalls): see
+admm_rho.py. Every change is recorded with its reason (``SolverRun.rho_history``). A
+number fixes rho. ``dual_start`` "multipliers" starts Lambda at -bd(C G) of the start.
 
 Stopping: the relative primal residual ||bd(G) - I||_F / sqrt(Md) and the relative dual
 residual ||H^{k+1} - H^k||_F / ||H^k||_F both below ``tol``, or ``max_iter``; or, with
@@ -21,10 +21,16 @@ residual ||H^{k+1} - H^k||_F / ||H^k||_F both below ``tol``, or ``max_iter``; or
 ..., and max_iter) when the rounded iterate, Newton-polished to a KKT point, is certified
 globally optimal. Without ``polish`` the run is plain eq. (7) (paper experiments).
 
+Checkpoints (checkpoint.BestPoint): the rounded iterate is Newton-polished (further
+passes when one stops short of a KKT point and the certificate fails) and certified; a
+point rejected with negative curvature is escaped from by Riemannian-staircase steps
+(staircase.py, ``staircase_rounds``) at checkpoint 0 and after the iterations.
+
 Registry entry ``run(ctx)`` (see mvreg.solver.base): options ``solve.reg_admm``
-(RegAdmmOptions: rho, max_iter, tol, polish, lobpcg_steps, stall_window). Returns checked
-rotations: the best polished point (lowest cost) over the checkpoints and the last iterate,
-with its certificate; or, without ``polish``, the rounded last iterate, certified.
+(RegAdmmOptions: rho, rho_policy, dual_start, balance_window, stall_window,
+staircase_rounds, max_iter, tol, polish, lobpcg_steps). Returns checked rotations: the best
+polished point (lowest cost) over the checkpoints, the escapes and the last iterate, with
+its certificate; or, without ``polish``, the rounded last iterate, certified.
 Iteration records: objective Tr(C G) in the problem's units, the relative primal and dual
 residuals, rho. Design notes: docs/design/solver.md.
 """
@@ -41,15 +47,19 @@ import numpy as np
 import scipy.linalg as sla
 import scipy.sparse.linalg as spla
 
+from mvreg.solver.admm_rho import RhoPolicy, balanced_rho, theorem4_rho
 from mvreg.solver.base import IterationRecord, SolverContext, SolverRun
 from mvreg.solver.blocks import (
     block_apply,
+    diag_blocks_of_cg,
     diag_blocks_of_gram,
     round_to_rotations,
     x_from_rotations,
 )
-from mvreg.solver.certificate import certify
-from mvreg.solver.polish import polish
+from mvreg.solver.certificate import multipliers
+from mvreg.solver.checkpoint import BestPoint
+
+__all__ = ["AdmmState", "run", "run_reg_admm", "state_from_rotations", "theorem4_rho"]
 
 
 @dataclass
@@ -70,12 +80,6 @@ class AdmmRun:
     eig_steps: int = 0
 
 
-def theorem4_rho(lam_d1: float, m: int, d: int, h0_norm: float | None = None) -> float:
-    """Theorem 4: rho <= lambda_{d+1}(C) / sqrt(||H0||^2 + 2 M sqrt(d) ||H0|| + M^2 d)."""
-    h = m * math.sqrt(d) if h0_norm is None else h0_norm
-    return lam_d1 / math.sqrt(h * h + 2 * m * math.sqrt(d) * h + m * m * d)
-
-
 def _gram_diff_sq(U1, s1, U0, s0) -> float:
     """||U1 S1 U1^T - U0 S0 U0^T||_F^2 in O(n d^2)."""
     g = U1.T @ U0
@@ -92,6 +96,31 @@ def state_from_rotations(R: np.ndarray, lam: np.ndarray | None = None, rho: floa
     return AdmmState(U=U, s=np.full(d, float(m)), lam=lam, rho=rho)
 
 
+def _g_update(op, U, s, lam, rho, c_dense, lobpcg_steps):
+    """Top-d eigenpairs (w ascending, V) of A = U diag(s) U^T + D - C / rho, with the block
+    diagonal D = I - bd(G) - Lambda / rho; also bd(G) of the current iterate."""
+    d, m, n = op.d, op.M, op.n
+    gd = diag_blocks_of_gram(U, s, d)
+    dblk = np.eye(d) - gd - lam / rho
+    if c_dense is not None:
+        a = (U * s) @ U.T
+        a -= c_dense / rho
+        for i in range(m):
+            a[i * d : (i + 1) * d, i * d : (i + 1) * d] += dblk[i]
+        w, V = sla.eigh(a, subset_by_index=[n - d, n - 1], overwrite_a=True)
+        return w, V, gd
+
+    def apply(v):
+        return U @ (s[:, None] * (U.T @ v)) + block_apply(dblk, v) - op.matvec(v) / rho
+
+    aop = spla.LinearOperator((n, n), matvec=apply, matmat=apply, dtype=np.float64)
+    with warnings.catch_warnings():  # a few warm-started steps per iteration by design
+        warnings.simplefilter("ignore")
+        w, V = spla.lobpcg(aop, U, largest=True, maxiter=lobpcg_steps, tol=1e-12 * m)
+    order = np.argsort(w)
+    return w[order], V[:, order], gd
+
+
 def run_reg_admm(
     op,
     state: AdmmState,
@@ -99,57 +128,34 @@ def run_reg_admm(
     dense: bool,
     max_iter: int,
     tol: float,
-    rho_mode: str,
-    rho_max: float,
+    policy: RhoPolicy,
     checkpoint: Callable[[int, AdmmState], bool] | None = None,
     checkpoints: set[int] | None = None,
     callback: Callable[[IterationRecord], None] | None = None,
     lobpcg_steps: int = 4,
-    stall_window: int = 10,
 ) -> AdmmRun:
-    """Iterate eq. (7) from ``state``. ``checkpoint(k, state) -> True`` stops the loop."""
+    """Iterate eq. (7) from ``state``, rho from ``policy`` (admm_rho.RhoPolicy).
+    ``checkpoint(k, state) -> True`` stops the loop."""
     d, m, n = op.d, op.M, op.n
-    eye = np.eye(d)
     s2 = op.norm.scale**2
     run = AdmmRun(state=state)
-    U, s, lam, rho = state.U, state.s, state.lam, state.rho
-    best_pr, best_at = np.inf, 0
+    U, s, lam, rho = state.U, state.s, state.lam, policy.rho
     c_dense = op.dense() if dense else None
     for k in range(1, max_iter + 1):
-        gd = diag_blocks_of_gram(U, s, d)
-        dblk = eye - gd - lam / rho
-        if dense:
-            a = (U * s) @ U.T
-            a -= c_dense / rho
-            for i in range(m):
-                a[i * d : (i + 1) * d, i * d : (i + 1) * d] += dblk[i]
-            w, V = sla.eigh(a, subset_by_index=[n - d, n - 1], overwrite_a=True)
-            run.eig_steps += 1
-        else:
-
-            def apply(v, U=U, s=s, dblk=dblk, rho=rho):
-                return U @ (s[:, None] * (U.T @ v)) + block_apply(dblk, v) - op.matvec(v) / rho
-
-            aop = spla.LinearOperator((n, n), matvec=apply, matmat=apply, dtype=np.float64)
-            with warnings.catch_warnings():  # a few warm-started steps per iteration by design
-                warnings.simplefilter("ignore")
-                w, V = spla.lobpcg(aop, U, largest=True, maxiter=lobpcg_steps, tol=1e-12 * m)
-            run.eig_steps += lobpcg_steps
-            order = np.argsort(w)
-            w, V = w[order], V[:, order]
+        w, V, gd = _g_update(op, U, s, lam, rho, c_dense, lobpcg_steps)
+        run.eig_steps += 1 if dense else lobpcg_steps
         s_new = np.maximum(w, 0.0)
         gd_new = diag_blocks_of_gram(V, s_new, d)
-        resid_blocks = gd_new - eye
+        resid_blocks = gd_new - np.eye(d)
         pr = float(np.linalg.norm(resid_blocks))
         # ||H1 - H0||^2 = ||G1 - G0||^2 - ||bd(G1) - bd(G0)||^2 (H = G off the diagonal).
-        dh2 = _gram_diff_sq(V, s_new, U, s) - float(np.sum((gd_new - gd) ** 2))
+        dh = math.sqrt(max(_gram_diff_sq(V, s_new, U, s) - float(np.sum((gd_new - gd) ** 2)), 0))
         h_norm = math.sqrt(max(float(np.sum(s**2)) - float(np.sum(gd**2)) + m * d, 1e-300))
-        dr = math.sqrt(max(dh2, 0.0)) / h_norm
         lam = lam + rho * resid_blocks
         U, s = V, s_new
         cu = op.matvec(U)
         obj = float(np.sum(s * np.sum(U * cu, axis=0))) * s2
-        rec = IterationRecord(k, obj, pr / math.sqrt(n), dr, rho)
+        rec = IterationRecord(k, obj, pr / math.sqrt(n), dh / h_norm, rho)
         run.history.append(rec)
         run.iterations = k
         if callback is not None:
@@ -162,28 +168,21 @@ def run_reg_admm(
         if checkpoint is not None and checkpoints is not None and k in checkpoints:
             if checkpoint(k, state):
                 break
-        # rho policy: raise rho when the primal residual stops decreasing.
-        if rec.primal_residual < 0.99 * best_pr:
-            best_pr, best_at = rec.primal_residual, k
-        elif rho_mode == "auto" and k - best_at >= stall_window and rho < rho_max:
-            new = min(2.0 * rho, rho_max)
-            run.rho_changes.append(
-                {
-                    "iteration": k,
-                    "rho": new,
-                    "previous": rho,
-                    "reason": f"primal residual stalled at {rec.primal_residual:.3g} "
-                    f"for {stall_window} iterations (oscillation, paper 000 sec. 2.6)",
-                }
-            )
-            rho = new
-            best_pr, best_at = rec.primal_residual, k
+        # The dual residual rho ||dH|| relative to the dual's scale ||bd(C G)|| (= ||Lambda*||
+        # at a KKT point, Prop. 2).
+        cg = float(np.linalg.norm(diag_blocks_of_cg(U, s, cu, d)))
+        rho = policy.update(k, rec.primal_residual, rho * dh / max(cg, 1e-300))
+    run.rho_changes = policy.changes
     return run
 
 
 def rotations_from_state(state: AdmmState, d: int, allow_reflections: bool) -> np.ndarray:
     """O = diag(sqrt(s)) U^T, blocks rounded to SO(d) / O(d)."""
     return round_to_rotations(state.U * np.sqrt(np.maximum(state.s, 0.0)), d, allow_reflections)
+
+
+def _rounded(state: AdmmState, ctx: SolverContext) -> np.ndarray:
+    return rotations_from_state(state, ctx.operator.d, ctx.allow_reflections)
 
 
 def _checkpoints(max_iter: int) -> set[int]:
@@ -198,69 +197,25 @@ def _checkpoints(max_iter: int) -> set[int]:
     return pts
 
 
-class _BestPoint:
-    """The best Newton-polished rounded iterate seen so far and its certificate.
+def _policy(ctx: SolverContext) -> RhoPolicy:
+    """The rho policy of the options (admm_rho): its kind, start and bounds."""
+    op, o, spec = ctx.operator, ctx.options, ctx.spectrum
+    d, m = op.d, op.M
+    th4 = theorem4_rho(spec.lambda_d_plus_1(d), m, d)
+    if o.rho != "auto":
+        return RhoPolicy(float(o.rho), kind="fixed")
+    if o.rho_policy == "theorem4":
+        return RhoPolicy(th4, "theorem4", o.stall_window, rho_max=max(spec.largest, th4))
+    rho0 = balanced_rho(spec.largest, m)
+    # Capped at its start: above lambda_max(C) / M the steps only get shorter (admm_rho).
+    return RhoPolicy(rho0, "balanced", o.balance_window, rho_min=th4, rho_max=rho0)
 
-    ``check(k, state)`` polishes the rounded iterate; if that reaches a lower cost than
-    before it is certified and kept. Returns True once a kept point is certified.
-    """
 
-    def __init__(self, ctx: SolverContext):
-        self.ctx = ctx
-        self.lam_max = ctx.spectrum.largest
-        self.R = None
-        self.f = np.inf
-        self.cert = None
-        self.polish = None
-        self.at = None
-        self.t_polish = 0.0
-        self.t_cert = 0.0
-
-    @property
-    def certified(self) -> bool:
-        return self.cert is not None and self.cert.certified
-
-    def _polish(self, R):
-        t0 = time.perf_counter()
-        out = polish(self.ctx.operator, R, self.lam_max, self.ctx.allow_reflections)
-        self.t_polish += time.perf_counter() - t0
-        return out
-
-    def _certify(self, R, inverse):
-        t0 = time.perf_counter()
-        c = self.ctx
-        cert = (
-            certify(c.operator, R, self.lam_max, c.dense, c.gap_tol, c.seed, inverse=inverse)
-            if c.certify
-            else None
-        )
-        self.t_cert += time.perf_counter() - t0
-        return cert
-
-    def check(self, k: int, state: AdmmState) -> bool:
-        R = rotations_from_state(state, self.ctx.operator.d, self.ctx.allow_reflections)
-        Rp, pst = self._polish(R)
-        if pst.objective >= self.f - 1e-12 * max(abs(self.f), 1e-300):
-            return False  # same stationary point as before: already checked
-        cert = self._certify(Rp, pst.inverse)
-        pst.inverse = None  # free the factorization
-        self.R, self.f, self.cert, self.polish, self.at = Rp, pst.objective, cert, pst, k
-        return self.certified
-
-    def finish(self, run: AdmmRun, polishing: bool) -> None:
-        """After the iterations: polish the last iterate (when polishing) and certify the
-        best point unless a checkpoint already did."""
-        R_final = rotations_from_state(run.state, self.ctx.operator.d, self.ctx.allow_reflections)
-        if polishing:
-            Rp, pst = self._polish(R_final)
-            if pst.objective < self.f:
-                self.R, self.f, self.polish, self.at = Rp, pst.objective, pst, run.iterations
-                self.cert = None
-        elif self.R is None:
-            self.R, self.at = R_final, run.iterations
-        if self.R is R_final or self.cert is None:
-            inv = self.polish.inverse if self.polish is not None else None
-            self.cert = self._certify(self.R, inv)
+_RHO_REASONS = {
+    "fixed": "fixed",
+    "theorem4": "Theorem 4 bound",
+    "balanced": "lambda_max(C) / M (power-step scale), then residual balancing",
+}
 
 
 def run(ctx: SolverContext) -> SolverRun:
@@ -268,39 +223,44 @@ def run(ctx: SolverContext) -> SolverRun:
     iterates are Newton-polished and certified at checkpoints (the start included) and the
     iterations stop once one is certified. Returns checked rotations (see base.SolverRun)."""
     op, o = ctx.operator, ctx.options
-    d, m = op.d, op.M
-    lam_max = ctx.spectrum.largest
-    rho0 = theorem4_rho(ctx.spectrum.lambda_d_plus_1(d), m, d) if o.rho == "auto" else float(o.rho)
+    policy = _policy(ctx)
+    rho0 = policy.rho
     state = state_from_rotations(ctx.start, rho=rho0)
-    best = _BestPoint(ctx)
+    best = BestPoint(ctx)
     t0 = time.perf_counter()
-    # Checkpoint 0: the start itself; REG-ADMM iterates only when it is not certified.
-    if o.polish and best.check(0, state):
+    # Checkpoint 0: the start itself. When the certificate rejects it with a direction of
+    # negative curvature, staircase steps first; REG-ADMM iterates only when neither the
+    # start nor an escape from it is certified (from the cheapest point found).
+    if o.polish and (best.check(0, _rounded(state, ctx)) or best.escape(o.staircase_rounds)):
         admm = AdmmRun(state=state)
     else:
+        if best.escapes:
+            state = state_from_rotations(best.R, rho=rho0)
+        if o.dual_start == "multipliers":
+            X = x_from_rotations(best.R if best.escapes else ctx.start)
+            state.lam = multipliers(X, op.matvec(X), op.d)[0]
         admm = run_reg_admm(
             op,
             state,
             dense=ctx.dense,
             max_iter=o.max_iter,
             tol=o.tol,
-            rho_mode="auto" if o.rho == "auto" else "fixed",
-            rho_max=max(lam_max, rho0),
-            checkpoint=best.check if o.polish else None,
+            policy=policy,
+            checkpoint=(lambda k, st: best.check(k, _rounded(st, ctx))) if o.polish else None,
             checkpoints=_checkpoints(o.max_iter) if o.polish else None,
             callback=ctx.callback,
             lobpcg_steps=o.lobpcg_steps,
-            stall_window=o.stall_window,
         )
-    t_iter = time.perf_counter() - t0 - best.t_polish - best.t_cert
+    t_iter = time.perf_counter() - t0 - best.t_polish - best.t_cert - best.t_escape
     certified_early = best.certified
     if not certified_early:
-        best.finish(admm, o.polish)
+        best.finish(_rounded(admm.state, ctx), admm.iterations, o.polish)
+        if o.polish:
+            best.escape(o.staircase_rounds)
     pst = best.polish
     if pst is not None:
         pst.inverse = None  # free the factorization
     stopped = "residuals" if admm.residuals_converged else "max_iter"
-    reason = "Theorem 4 bound" if o.rho == "auto" else "fixed"
     return SolverRun(
         rotations=best.R,
         iterations=admm.iterations,
@@ -309,6 +269,7 @@ def run(ctx: SolverContext) -> SolverRun:
         stats={
             "residuals_converged": admm.residuals_converged,
             "stopped_by": "certificate" if certified_early else stopped,
+            "staircase": best.escapes,
             "polished_at_iteration": best.at,
             "newton_steps": None if pst is None else pst.newton_steps,
             "newton_cg_steps": None if pst is None else pst.cg_steps,
@@ -317,7 +278,13 @@ def run(ctx: SolverContext) -> SolverRun:
         checked=True,
         certificate=best.cert,
         rho_initial=rho0,
-        rho_final=admm.state.rho if not admm.rho_changes else admm.rho_changes[-1]["rho"],
-        rho_history=[{"iteration": 0, "rho": rho0, "reason": reason}, *admm.rho_changes],
-        timings={"iterations": t_iter, "polish": best.t_polish, "certificate": best.t_cert},
+        rho_final=policy.rho,
+        rho_history=[{"iteration": 0, "rho": rho0, "reason": _RHO_REASONS[policy.kind]}]
+        + admm.rho_changes,
+        timings={
+            "iterations": t_iter,
+            "polish": best.t_polish,
+            "certificate": best.t_cert,
+            "staircase": best.t_escape,
+        },
     )

@@ -52,9 +52,15 @@ class SolveResult:
         return dict(zip(self.patch_names, self.T_world_patch, strict=True))
 
     def summary(self) -> str:
-        cert = (
-            "n/a" if self.certificate is None else ("yes" if self.certificate.certified else "NO")
-        )
+        """One line: solver, size, iterations, time, objective, and the certificate; when not
+        certified, the lower bound on the optimum and the relative gap it leaves."""
+        c = self.certificate
+        cert = "n/a" if c is None else ("yes" if c.certified else "NO")
+        if c is not None and not c.certified:
+            cert += (
+                f" (optimum >= {c.lower_bound:.6g}: relative gap <= {c.relative_gap:.3g}, "
+                f"min eigenvalue {c.min_eigenvalue:.3g})"
+            )
         t = self.timings.get("total", float("nan"))
         return (
             f"{self.solver} ({self.method}): {len(self.patch_names)} patches, "

@@ -1,0 +1,123 @@
+"""The best point of an iterative run: polished, certified, and escaped from when rejected.
+
+REG-ADMM (reg_admm.py) hands its rounded iterates to ``BestPoint.check`` at checkpoints
+(the start, then iterations 1, 2, 5, 10, 20, 50, ...): each is Newton-polished (and, when
+one polish pass stops short of a KKT point and the certificate fails, polished further,
+polish.repolish), certified, and kept if it is cheaper than the best so far.
+``BestPoint.escape`` takes Riemannian-staircase steps (staircase.py) from the best point
+while its certificate shows a direction of negative curvature. Design notes:
+docs/design/solver.md.
+"""
+
+from __future__ import annotations
+
+import time
+
+import numpy as np
+
+from mvreg.solver.base import SolverContext
+from mvreg.solver.certificate import EIG_TOL, certify
+from mvreg.solver.polish import KKT_TOL, polish, repolish
+from mvreg.solver.staircase import escape
+
+
+class BestPoint:
+    """The best Newton-polished rounded iterate seen so far and its certificate.
+
+    ``check(k, R)`` polishes R; if that reaches a lower cost than before it is certified
+    and kept. Returns True once a kept point is certified.
+    """
+
+    def __init__(self, ctx: SolverContext):
+        self.ctx = ctx
+        self.lam_max = ctx.spectrum.largest
+        self.R = None
+        self.f = np.inf
+        self.cert = None
+        self.polish = None
+        self.at = None
+        self.t_polish = 0.0
+        self.t_cert = 0.0
+        self.t_escape = 0.0
+        self.escapes: list[dict] = []
+
+    @property
+    def certified(self) -> bool:
+        return self.cert is not None and self.cert.certified
+
+    def _polish(self, R):
+        t0 = time.perf_counter()
+        out = polish(self.ctx.operator, R, self.lam_max, self.ctx.allow_reflections)
+        self.t_polish += time.perf_counter() - t0
+        return out
+
+    def _repolish(self, R, stats):
+        t0 = time.perf_counter()
+        c = self.ctx
+        out = repolish(c.operator, R, stats, self.lam_max, c.allow_reflections)
+        self.t_polish += time.perf_counter() - t0
+        return out
+
+    def _certify(self, R, inverse):
+        t0 = time.perf_counter()
+        c = self.ctx
+        cert = (
+            certify(c.operator, R, self.lam_max, c.dense, c.gap_tol, c.seed, inverse=inverse)
+            if c.certify
+            else None
+        )
+        self.t_cert += time.perf_counter() - t0
+        return cert
+
+    def check(self, k: int, R: np.ndarray) -> bool:
+        Rp, pst = self._polish(R)
+        if pst.objective >= self.f - 1e-12 * max(abs(self.f), 1e-300):
+            return False  # same stationary point as before: already checked
+        cert = self._certify(Rp, pst.inverse)
+        if not (cert is not None and cert.certified) and pst.kkt_residual > KKT_TOL:
+            # Polish stopped short of a KKT point (polish.repolish): finish, then certify.
+            Rp, pst = self._repolish(Rp, pst)
+            cert = self._certify(Rp, pst.inverse)
+        pst.inverse = None  # free the factorization
+        self.R, self.f, self.cert, self.polish, self.at = Rp, pst.objective, cert, pst, k
+        return self.certified
+
+    def finish(self, R_final: np.ndarray, iterations: int, polishing: bool) -> None:
+        """After the iterations: polish the last iterate (when polishing) and certify the
+        best point unless a checkpoint already did."""
+        if polishing:
+            Rp, pst = self._repolish(*self._polish(R_final))
+            if pst.objective < self.f:
+                self.R, self.f, self.polish, self.at = Rp, pst.objective, pst, iterations
+                self.cert = None
+        elif self.R is None:
+            self.R, self.at = R_final, iterations
+        if self.R is R_final or self.cert is None:
+            inv = self.polish.inverse if self.polish is not None else None
+            self.cert = self._certify(self.R, inv)
+
+    def escape(self, rounds: int) -> bool:
+        """Up to ``rounds`` staircase steps from the best point while its certificate shows
+        negative curvature; each result is polished, certified and kept when cheaper.
+        Returns True once certified."""
+        c = self.ctx
+        for r in range(rounds - len(self.escapes)):
+            if self.certified or self.cert is None or self.cert.min_eigenvalue >= -EIG_TOL:
+                break
+            t0 = time.perf_counter()
+            R2, st = escape(c.operator, self.R, self.lam_max, c.allow_reflections, c.seed + r)
+            self.t_escape += time.perf_counter() - t0
+            rec = {"min_eigenvalue": st.min_eigenvalue, "step": st.step}
+            rec.update(lifted_iterations=st.iterations, from_objective=self.cert.objective)
+            self.escapes.append(rec)
+            if R2 is None:
+                break
+            Rp, pst = self._repolish(*self._polish(R2))
+            rec["objective"] = pst.objective * c.operator.norm.scale**2
+            if pst.objective >= self.f:
+                break  # no cheaper point found: stop climbing
+            cert = self._certify(Rp, pst.inverse)
+            pst.inverse = None
+            self.R, self.f, self.cert, self.polish = Rp, pst.objective, cert, pst
+            rec["certified"] = self.certified
+        return self.certified

@@ -27,7 +27,10 @@ def solve(
     ] = None,
     rho: Annotated[
         str | None,
-        typer.Option(help="'auto' (default: Theorem 4, raised on oscillation) or a number."),
+        typer.Option(
+            help="'auto' (default: reg_admm.rho_policy, 'balanced': lambda_max(C)/M, balanced "
+            "down by the residuals; 'theorem4': paper 000's bound) or a number."
+        ),
     ] = None,
     max_iter: Annotated[int | None, typer.Option(help="Iteration cap (default 500).")] = None,
     tol: Annotated[

@@ -44,7 +44,7 @@ def builtin_set(tmp_path_factory):
 
 
 def test_bridge_groups_are_the_smaller_sides_of_bridges():
-    from mvreg.globalstage.verify import bridge_groups, bridges
+    from mvreg.globalstage.graph import bridge_groups, bridges
 
     # A triangle 0-1-2, a bridge 2-3, a chain 3-4-5: bridges 2-3, 3-4, 4-5.
     g = {0: {1, 2}, 1: {0, 2}, 2: {0, 1, 3}, 3: {2, 4}, 4: {3, 5}, 5: {4}}

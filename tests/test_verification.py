@@ -167,7 +167,7 @@ def test_real_bunny_all_verified(shared_data: Path):
 def test_main_block_leaves_out_groups_hanging_on_one_pair():
     """A group of scans that agree with each other but join the rest by one pair (a bridge)
     is outside the main block: its place relative to the rest rests on that one pair."""
-    from mvreg.globalstage.verify import main_block
+    from mvreg.globalstage.graph import main_block
 
     two_triangles = {0: {1, 2}, 1: {0, 2}, 2: {0, 1, 3}, 3: {2, 4, 5}, 4: {3, 5}, 5: {3, 4}}
     assert main_block(two_triangles) == {0, 1, 2}  # a tie: the block with the lowest index

@@ -140,6 +140,18 @@ def _moved(M: np.ndarray, pts: np.ndarray) -> float:
     return float(np.median(np.linalg.norm(transform_points(M, pts) - pts, axis=1)))
 
 
+def refine_on_model(M, src, src_n, model: ScanModel, voxel: float, acfg: AlignConfig):
+    """Point-to-plane ICP of the world points ``src`` moved by ``M`` on ``model``: from the
+    RANSAC inlier distance plus a voxel, then within one voxel. Returns the refined M."""
+    reach = (acfg.ransac_distance_voxels + 1.0) * voxel
+    for dist, iters in ((reach, 30), (voxel, 20)):
+        M = icp_point_to_plane(
+            src, src_n, model.points, model.normals, model.tree, M, dist, iters,
+            acfg.icp_min_normal_cos,
+        )  # fmt: skip
+    return M
+
+
 def view_conflict(group, pre, T_world_scan, others, M: np.ndarray, acfg: AlignConfig):
     """The first (scan of ``others``, description) whose view contradicts the ``group``
     moved by the world motion ``M`` more than it contradicts the current placement (share
@@ -211,7 +223,6 @@ def _search(group, pre, T_world_scan, others, model, voxel, acfg, far_voxels, ma
 
     base = fit(np.eye(4))
     floor = 0.5 * share_on(target, source, np.eye(4), acfg, voxel)
-    reach = (acfg.ransac_distance_voxels + 1.0) * voxel
     shares = [share_on(target, source, M, acfg, voxel) for M in candidates]
     order = np.argsort(-np.asarray(shares), kind="stable")
     far_enough = [
@@ -219,11 +230,7 @@ def _search(group, pre, T_world_scan, others, model, voxel, acfg, far_voxels, ma
         if shares[k] >= floor and _moved(candidates[k], source.points) > far
     ]  # fmt: skip
     for M in far_enough[:max_refined]:
-        for dist, iters in ((reach, 30), (voxel, 20)):
-            M = icp_point_to_plane(
-                src, src_n, model.points, model.normals, model.tree, M, dist, iters,
-                acfg.icp_min_normal_cos,
-            )  # fmt: skip
+        M = refine_on_model(M, src, src_n, model, voxel, acfg)
         if _moved(M, src) <= far:
             continue  # came back to the current placement
         overlap, ratio = fit(M)
@@ -289,14 +296,8 @@ def self_symmetry(
         stride = max(1, len(model.points) // max_points)
         src, src_n = model.points[::stride], model.normals[::stride]
         noise = float(np.median(model.noise))
-        reach = (acfg.ransac_distance_voxels + 1.0) * voxel
         for k in order[:max_refined]:
-            M = candidates[k]
-            for dist, iters in ((reach, 30), (voxel, 20)):
-                M = icp_point_to_plane(
-                    src, src_n, model.points, model.normals, model.tree, M, dist, iters,
-                    acfg.icp_min_normal_cos,
-                )  # fmt: skip
+            M = refine_on_model(candidates[k], src, src_n, model, voxel, acfg)
             if _moved(M, src) <= far:
                 continue
             overlap, ratio, *_ = model_fit(

@@ -1,0 +1,107 @@
+"""Graphs of agreeing pairs ({scan: set of partner scans}): cycles, bridges, the main
+2-edge-connected block and the groups that hang on the rest by one pair. Pure functions
+on small dicts; used by :mod:`mvreg.globalstage.verify`."""
+
+from __future__ import annotations
+
+__all__ = ["bridge_groups", "bridges", "main_block", "on_cycle"]
+
+
+def on_cycle(graph: dict[int, set[int]]) -> set[int]:
+    """Scans with two neighbours that are connected without them (the scan lies on a
+    cycle of the graph)."""
+    out = set()
+    for s, nbrs in graph.items():
+        if len(nbrs) < 2:
+            continue
+        # Components of the graph without s, reached from s's neighbours.
+        label: dict[int, int] = {}
+        for start in nbrs:
+            if start in label:
+                out.add(s)
+                break
+            stack = [start]
+            label[start] = start
+            while stack:
+                a = stack.pop()
+                for b in graph[a]:
+                    if b != s and b not in label:
+                        label[b] = start
+                        stack.append(b)
+    return out
+
+
+def bridges(graph: dict[int, set[int]]) -> set[frozenset]:
+    """The pairs of the graph whose removal disconnects it (Tarjan, iterative)."""
+    index: dict[int, int] = {}
+    low: dict[int, int] = {}
+    out: set[frozenset] = set()
+    counter = 0
+    for root in sorted(graph):
+        if root in index:
+            continue
+        index[root] = low[root] = counter
+        counter += 1
+        stack = [(root, None, iter(sorted(graph[root])))]
+        while stack:
+            v, parent, it = stack[-1]
+            w = next(it, None)
+            if w is None:
+                stack.pop()
+                if parent is not None:
+                    low[parent] = min(low[parent], low[v])
+                    if low[v] > index[parent]:
+                        out.add(frozenset((parent, v)))
+                continue
+            if w == parent:
+                continue
+            if w in index:
+                low[v] = min(low[v], index[w])
+            else:
+                index[w] = low[w] = counter
+                counter += 1
+                stack.append((w, v, iter(sorted(graph[w]))))
+    return out
+
+
+def _reach(graph: dict[int, set[int]], start: int, cut: set[frozenset]) -> set[int]:
+    """Scans reached from ``start`` without crossing the pairs in ``cut``."""
+    seen, todo = {start}, [start]
+    while todo:
+        a = todo.pop()
+        for b in graph[a]:
+            if b not in seen and frozenset((a, b)) not in cut:
+                seen.add(b)
+                todo.append(b)
+    return seen
+
+
+def main_block(graph: dict[int, set[int]]) -> set[int]:
+    """The largest 2-edge-connected block of the graph (ties: the one holding the lowest
+    scan index): the scans that stay connected when any one pair is removed. A group of
+    scans that agree with each other but hang on the rest by a single pair (a bridge) is
+    outside it: the group's place relative to the rest rests on that one pair."""
+    cut = bridges(graph)
+    seen: set[int] = set()
+    blocks = []
+    for s in sorted(graph):
+        if s not in seen:
+            block = _reach(graph, s, cut)
+            seen |= block
+            blocks.append(block)
+    best = max(blocks, key=lambda b: (len(b), -min(b)), default=set())
+    return best if len(best) >= 3 else set()
+
+
+def bridge_groups(graph: dict[int, set[int]]) -> list[list[int]]:
+    """For each bridge of the graph, the smaller of the two sides it joins (ties: the
+    side without the lowest scan index), when it has at least two scans: groups of scans
+    placed relative to the rest by that one pair. Smallest first, each once."""
+    groups = set()
+    for edge in sorted(bridges(graph), key=sorted):
+        a, b = sorted(edge)
+        side_a, side_b = _reach(graph, a, {edge}), _reach(graph, b, {edge})
+        side = side_b if (len(side_b), min(side_a)) <= (len(side_a), min(side_b)) else side_a
+        if len(side) >= 2:
+            groups.add(tuple(sorted(side)))
+    return [list(g) for g in sorted(groups, key=lambda g: (len(g), g))]

@@ -38,6 +38,9 @@ class EscapeStats:
     start_cost: float  # Tr(X^T C X) at the start (normalized units)
 
 
+DENSE_MAX = 600  # below this size the eigenproblem is solved densely
+
+
 def _polar_rows(Y: np.ndarray, d: int) -> np.ndarray:
     """Each d x p block of Y (n, p) replaced by the nearest block with orthonormal rows."""
     p = Y.shape[1]
@@ -53,11 +56,17 @@ def most_negative_direction(op, X: np.ndarray, lam: np.ndarray, lam_max: float, 
     def apply(v):
         return op.matvec(v) + block_apply(lam, v)
 
-    aop = spla.LinearOperator((n, n), matvec=apply, matmat=apply, dtype=np.float64)
-    x0 = np.random.default_rng(seed).standard_normal((n, 3))
-    with warnings.catch_warnings():
-        warnings.simplefilter("ignore")
-        w, V = spla.lobpcg(aop, x0, Y=q, largest=False, tol=1e-6 * lam_max, maxiter=200)
+    if n <= DENSE_MAX:  # lobpcg solves small problems densely, where it takes no constraint
+        A = apply(np.eye(n))
+        P = np.eye(n) - q @ q.T
+        shift = 2.0 * (abs(lam_max) + float(np.max(np.abs(A)))) + 1.0  # span(X) to the top
+        w, V = np.linalg.eigh(P @ ((A + A.T) / 2) @ P + shift * (q @ q.T))
+    else:
+        aop = spla.LinearOperator((n, n), matvec=apply, matmat=apply, dtype=np.float64)
+        x0 = np.random.default_rng(seed).standard_normal((n, 3))
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore")
+            w, V = spla.lobpcg(aop, x0, Y=q, largest=False, tol=1e-6 * lam_max, maxiter=200)
     i = int(np.argmin(w))
     v = V[:, i] - q @ (q.T @ V[:, i])
     return float(w[i]), v / np.linalg.norm(v)

@@ -88,10 +88,14 @@ def _place_all(pre, T_verified, todo, voxel, acfg, results, max_tries):
     placed: dict[int, tuple[np.ndarray, ScanVerification]] = {}
     T_all = dict(T_verified)
     todo = [s for s in todo if s not in T_all]
+    models: dict[tuple, tuple] = {}  # the placed set -> (feature model, fine model)
     while todo and len(T_all) >= 2:
         added = []
         for s in todo:
-            found = _place_one(s, pre, T_all, voxel, acfg, results, max_tries)
+            key = tuple(sorted(T_all))
+            if key not in models:  # rebuilt only when a scan was placed
+                models = {key: (feature_model(pre, T_all, key), scan_model(pre, T_all, key))}
+            found = _place_one(s, pre, T_all, models[key], voxel, acfg, results, max_tries)
             if found is not None:
                 T_all[s] = found[0]
                 placed[s] = found
@@ -102,9 +106,9 @@ def _place_all(pre, T_verified, todo, voxel, acfg, results, max_tries):
     return placed
 
 
-def _place_one(s, pre, T_all, voxel, acfg, results, max_tries):
+def _place_one(s, pre, T_all, models, voxel, acfg, results, max_tries):
     members = sorted(T_all)
-    target = feature_model(pre, T_all, members)
+    target, model = models
     source = feature_model(pre, {s: np.eye(4)}, [s])
     if len(source.features) < 3 or len(target.features) < 3:
         return None
@@ -117,7 +121,6 @@ def _place_one(s, pre, T_all, voxel, acfg, results, max_tries):
     order = np.argsort(-np.asarray(shares), kind="stable")
     centre, radius = scan_extent(source.points)
     best = distinct_poses([candidates[k] for k in order], 3 * voxel, centre, radius)
-    model = scan_model(pre, T_all, members)
     scan = pre[s]
     reach = (acfg.ransac_distance_voxels + 1.0) * voxel
     for C in best[:max_tries]:

@@ -54,6 +54,19 @@ def test_bridge_groups_are_the_smaller_sides_of_bridges():
     assert bridge_groups({0: {1, 2}, 1: {0, 2}, 2: {0, 1}}) == []
 
 
+def test_support_counts_from_one_side_of_a_scan_only():
+    """In a chain 2-7-6-8-3 of agreeing pairs (no cycle), scan 6 fitting 7 and 8 confirms
+    nothing: 7 and 8 are placed relative to each other through 6 alone. Fitting 8 and 3
+    (placed without 6) does."""
+    from mvreg.globalstage.graph import one_side
+
+    g = {2: {7}, 7: {2, 6}, 6: {7, 8}, 8: {6, 3}, 3: {8}, 1: set()}
+    assert one_side(g, 6, [7, 8]) == [7]  # one per side: the tie goes to the lower
+    assert one_side(g, 6, [7, 8, 3]) == [3, 8]
+    assert one_side(g, 6, [1, 7]) == [1]  # an isolated scan is a side of its own
+    assert one_side(g, 2, [7, 6, 3]) == [3, 6, 7]
+
+
 def test_a_flipped_group_has_a_better_pose(builtin_set):
     """Two scans turned 150 deg as one about an axis through the object: the search finds
     the pose that fits the others better (the truth), ~150 deg away."""
@@ -139,3 +152,44 @@ def test_no_self_symmetry_without_one(builtin_set):
     pre, truth, voxel = builtin_set
     model = scan_model(pre, truth, sorted(truth))
     assert self_symmetry(pre, truth, model, voxel, AlignConfig()) is None
+
+
+def test_pair_hypotheses_carry_the_partner_pose_into_the_world(builtin_set):
+    """Every hypothesis of a pair, in either order (scan as i or as j), becomes the world
+    pose of the scan that the partner's pose implies; pairs with unplaced partners give none."""
+    from mvreg.globalstage.model_search import pair_poses
+    from mvreg.pairwise.result import PairResult
+
+    _, truth, _ = builtin_set
+    F = np.eye(4)
+    F[:3, :3] = rotation_from_vector(np.radians(40) * np.array([1.0, 0.0, 0.0]))
+
+    def result(i, j, T_world_j):  # a pair whose best pose and hypothesis differ
+        T_i_j = np.linalg.inv(truth[i]) @ T_world_j
+        r = PairResult(i, j, T_i_j, 0.5, 0.0, 100, 0.5, False, "rejected")
+        r.stats["pose_hypotheses"] = [np.linalg.inv(truth[i]) @ truth[j]]
+        return r
+
+    placed = {k: truth[k] for k in (2, 3)}
+    results = [result(0, 2, F @ truth[2]), result(3, 0, truth[0]), result(0, 5, truth[5])]
+    poses = pair_poses(0, results, placed)
+    # (0, 2): scan 0 is i, p_0 = T_0_2 p_2; (3, 0): scan 0 is j; (0, 5): 5 is not placed.
+    assert len(poses) == 4
+    errors = sorted(_angle_deg(P, truth[0]) for P in poses)
+    assert max(errors[:3]) < 1e-4
+    assert abs(errors[3] - 40.0) < 1e-4
+
+
+def test_a_pose_that_overlaps_less_can_fit_as_well():
+    """Overlap alone does not rank two poses (a scan on a near-symmetric shape overlaps the
+    others more at its copy's place); the residual does, within its sampling spread."""
+    from mvreg.globalstage.model_search import fits_as_well
+
+    acfg = AlignConfig()
+    # The true place of a teapot view, barely covered by the others: as good.
+    assert fits_as_well(0.58, 0.90, 0.91, 0.93, 900, acfg)
+    # A turn that fits a bust's other side with a residual 20% higher: not as good.
+    assert not fits_as_well(0.78, 1.20, 0.84, 1.00, 800, acfg)
+    # Less than half the overlap, or a residual beyond the acceptance rule: not as good.
+    assert not fits_as_well(0.40, 0.90, 0.91, 0.93, 900, acfg)
+    assert not fits_as_well(0.90, acfg.max_residual_ratio + 0.1, 0.91, 5.0, 900, acfg)

@@ -76,6 +76,26 @@ def _reach(graph: dict[int, set[int]], start: int, cut: set[frozenset]) -> set[i
     return seen
 
 
+def one_side(graph: dict[int, set[int]], s: int, support) -> list[int]:
+    """The scans of ``support`` on the side of ``s`` that holds most of them: the
+    components of the graph without ``s``, the one with the most of ``support`` (ties:
+    the lowest scan index). Two scans on different sides are placed relative to each
+    other only through ``s`` itself, so their fitting ``s`` confirms nothing; two on one
+    side were placed without ``s``, and ``s`` fitting both closes a loop."""
+    rest = {a: graph[a] - {s} for a in graph if a != s}
+    best: list[int] = []
+    seen: set[int] = set()
+    for k in sorted(support):
+        if k in seen or k not in rest:
+            continue
+        side = _reach(rest, k, set())
+        seen |= side
+        mine = [j for j in support if j in side]
+        if len(mine) > len(best):
+            best = mine
+    return sorted(best)
+
+
 def main_block(graph: dict[int, set[int]]) -> set[int]:
     """The largest 2-edge-connected block of the graph (ties: the one holding the lowest
     scan index): the scans that stay connected when any one pair is removed. A group of

@@ -18,15 +18,14 @@ Contract (pure functions on preprocessed scans and poses; no I/O):
   RANSAC over mutual descriptor matches (:func:`mvreg.pairwise.hypotheses.ransac_numpy`),
   leaving out the matches the current placement already explains (sequential RANSAC: the
   pose already found would otherwise fill every slot).
-* :func:`distant_alternative` refines each candidate that moves the source far (median
-  point motion above ``far_voxels`` feature voxels) and brings at least half as much of
-  it onto the model as the current placement (the ``max_refined`` that bring the most;
-  candidates from ``rounds`` rounds of :func:`motion_candidates`), by point-to-plane ICP
-  on the fine level;
+* :func:`distant_alternative` refines, by point-to-plane ICP on the fine level, the
+  candidates that move the source far (median point motion above ``far_voxels`` feature
+  voxels): the ``max_refined`` of :func:`motion_candidates` (``rounds`` rounds) that
+  bring the most of it onto the model (at least half as much as the current placement),
+  and the pose hypotheses of the source's own pairs with the others (:func:`pair_poses`);
   it returns the first that fits the model as well as the current placement
-  (:func:`mvreg.globalstage.scan_model.equally_good`) or better and that no other scan's
-  view contradicts more than the current placement (:func:`view_conflict`: both
-  free-space tests), or None.
+  (:func:`fits_as_well`) or better and that no other scan's view contradicts more than
+  the current placement (:func:`view_conflict`: both free-space tests), or None.
 
 Every threshold is the pairwise acceptance rule's (``AlignConfig``) or in feature voxels;
 none is fitted to an object.
@@ -43,9 +42,9 @@ from scipy.spatial.transform import Rotation
 from mvreg.config.align import AlignConfig
 from mvreg.executor import single_threaded_blas
 from mvreg.geometry import invert_transform, transform_points
-from mvreg.globalstage.scan_model import ScanModel, equally_good, model_fit
+from mvreg.globalstage.scan_model import ScanModel, model_fit
 from mvreg.pairwise.features import FeatureBasis
-from mvreg.pairwise.hypotheses import ransac_numpy
+from mvreg.pairwise.hypotheses import distinct_poses, ransac_numpy, scan_extent
 from mvreg.pairwise.icp import feature_level_tree, icp_point_to_plane
 from mvreg.pairwise.scoring import free_space_violation, unseen_violation
 
@@ -175,6 +174,38 @@ def view_conflict(group, pre, T_world_scan, others, M: np.ndarray, acfg: AlignCo
     return None
 
 
+def pair_poses(s, results, T_placed) -> list[np.ndarray]:
+    """World poses of scan ``s`` from the pose hypotheses of its pairs with scans of
+    ``T_placed`` (``PairResult``, accepted or not: ``T_i_j`` and
+    ``stats["pose_hypotheses"]``), each carried into the world by the partner's pose."""
+    out = []
+    for r in results:
+        if s not in (r.i, r.j) or (r.j if r.i == s else r.i) not in T_placed:
+            continue
+        for T_i_j in [r.T_i_j, *r.stats.get("pose_hypotheses", [])]:
+            if r.i == s:  # p_s = T_i_j p_j
+                out.append(T_placed[r.j] @ invert_transform(T_i_j))
+            else:
+                out.append(T_placed[r.i] @ T_i_j)
+    return out
+
+
+def fits_as_well(overlap, ratio, base_overlap, base_ratio, n, acfg: AlignConfig) -> bool:
+    """Whether a distant pose explains the source as well as the current placement: its
+    residual within the acceptance rule and no worse than the current one's beyond the
+    sampling spread of a median over ``n`` matched points (relative, 3/sqrt(n)), and
+    at least half the current overlap (and the pairwise minimum). Overlap alone does not
+    rank two poses: a scan on a near-symmetric shape, placed where its copy is covered,
+    overlaps the others more than at its true place, which they may barely cover; the
+    rest of it then lies where no scan looked, which the caller checks
+    (:func:`view_conflict`)."""
+    return (
+        ratio <= acfg.max_residual_ratio
+        and ratio <= base_ratio * (1.0 + 3.0 / np.sqrt(max(n, 1)))
+        and overlap >= max(acfg.min_overlap_ratio, 0.5 * base_overlap)
+    )
+
+
 def distant_alternative(
     group,
     pre,
@@ -187,17 +218,21 @@ def distant_alternative(
     max_source: int = 1000,
     max_refined: int = 4,
     rounds: int = 2,
+    results=(),
 ) -> Alternative | None:
     """A world motion of the scans ``group`` (moved as one), far from the identity, under
     which they fit ``model`` (the fine level of ``others``) as well or better and that no
-    view of ``others`` contradicts more; or None (module docstring)."""
+    view of ``others`` contradicts more; or None (module docstring). Besides RANSAC on the
+    model, the pose hypotheses of the group's pairs with ``others`` (``results``,
+    :func:`pair_poses`) are tried: a pair sees the place the model barely covers, which
+    RANSAC on the whole model ranks below the well-covered symmetric copies."""
     with single_threaded_blas():  # small SVDs and solves: threads only busy-wait
         return _search(group, pre, T_world_scan, others, model, voxel, acfg, far_voxels,
-                       max_source, max_refined, rounds)  # fmt: skip
+                       max_source, max_refined, rounds, results)  # fmt: skip
 
 
 def _search(group, pre, T_world_scan, others, model, voxel, acfg, far_voxels, max_source,
-            max_refined, rounds) -> Alternative | None:  # fmt: skip
+            max_refined, rounds, results) -> Alternative | None:  # fmt: skip
     group = list(group)
     target = feature_model(pre, T_world_scan, others)
     source = feature_model(pre, T_world_scan, group)
@@ -207,7 +242,11 @@ def _search(group, pre, T_world_scan, others, model, voxel, acfg, far_voxels, ma
     candidates = motion_candidates(
         target, source, acfg, voxel, seed=min(group), far=far, rounds=rounds
     )
-    if not candidates:
+    placed = {k: T_world_scan[k] for k in others}
+    from_pairs = [
+        P @ invert_transform(T_world_scan[s]) for s in group for P in pair_poses(s, results, placed)
+    ]
+    if not candidates and not from_pairs:
         return None
     src = np.concatenate([transform_points(T_world_scan[s], pre[s].fine_points) for s in group])
     src_n = np.concatenate([pre[s].fine_normals @ T_world_scan[s][:3, :3].T for s in group])
@@ -223,18 +262,21 @@ def _search(group, pre, T_world_scan, others, model, voxel, acfg, far_voxels, ma
 
     base = fit(np.eye(4))
     floor = 0.5 * share_on(target, source, np.eye(4), acfg, voxel)
-    shares = [share_on(target, source, M, acfg, voxel) for M in candidates]
-    order = np.argsort(-np.asarray(shares), kind="stable")
-    far_enough = [
-        candidates[k] for k in order
-        if shares[k] >= floor and _moved(candidates[k], source.points) > far
-    ]  # fmt: skip
-    for M in far_enough[:max_refined]:
+
+    def best_far(cands, limit=max_refined, floor=floor):  # far ones bringing most onto it
+        shares = [share_on(target, source, M, acfg, voxel) for M in cands]
+        order = np.argsort(-np.asarray(shares), kind="stable")
+        return [
+            cands[k] for k in order if shares[k] >= floor and _moved(cands[k], source.points) > far
+        ][:limit]
+
+    from_pairs = distinct_poses(from_pairs, far, *scan_extent(source.points))
+    for M in best_far(candidates) + best_far(from_pairs, 6 * max_refined, acfg.min_overlap_ratio):
         M = refine_on_model(M, src, src_n, model, voxel, acfg)
         if _moved(M, src) <= far:
             continue  # came back to the current placement
         overlap, ratio = fit(M)
-        if not equally_good(overlap, ratio, base[0], base[1], len(src), acfg):
+        if not fits_as_well(overlap, ratio, base[0], base[1], base[0] * len(src), acfg):
             continue
         if view_conflict(group, pre, T_world_scan, others, M, acfg) is not None:
             continue

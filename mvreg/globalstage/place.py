@@ -33,11 +33,12 @@ import numpy as np
 
 from mvreg.config.align import AlignConfig
 from mvreg.executor import single_threaded_blas
-from mvreg.geometry import invert_transform, transform_points
+from mvreg.geometry import transform_points
 from mvreg.globalstage.model_search import (
     distant_alternative,
     feature_model,
     motion_candidates,
+    pair_poses,
     share_on,
 )
 from mvreg.globalstage.scan_model import model_fit, scan_model
@@ -70,20 +71,6 @@ def place_leftovers(
         return _place_all(pre, T_verified, todo, voxel, acfg, results, max_tries)
 
 
-def _pair_candidates(s, results, T_all) -> list[np.ndarray]:
-    """World poses of scan ``s`` from the hypotheses of its pairs with placed scans."""
-    out = []
-    for r in results:
-        if s not in (r.i, r.j) or (r.j if r.i == s else r.i) not in T_all:
-            continue
-        for T_i_j in [r.T_i_j, *r.stats.get("pose_hypotheses", [])]:
-            if r.i == s:  # p_s = T_i_j p_j
-                out.append(T_all[r.j] @ invert_transform(T_i_j))
-            else:
-                out.append(T_all[r.i] @ T_i_j)
-    return out
-
-
 def _place_all(pre, T_verified, todo, voxel, acfg, results, max_tries):
     placed: dict[int, tuple[np.ndarray, ScanVerification]] = {}
     T_all = dict(T_verified)
@@ -113,7 +100,7 @@ def _place_one(s, pre, T_all, models, voxel, acfg, results, max_tries):
     if len(source.features) < 3 or len(target.features) < 3:
         return None
     # No pose to stay away from: far = -1 keeps every match.
-    candidates = _pair_candidates(s, results, T_all)
+    candidates = pair_poses(s, results, T_all)
     candidates += motion_candidates(target, source, acfg, voxel, seed=s, far=-1.0)
     if not candidates:
         return None

@@ -81,7 +81,7 @@ import numpy as np
 
 from mvreg.config.align import AlignConfig
 from mvreg.geometry import invert_transform, rotation_from_vector, transform_points
-from mvreg.globalstage.graph import bridge_groups, main_block, on_cycle
+from mvreg.globalstage.graph import bridge_groups, main_block, on_cycle, one_side
 from mvreg.globalstage.model_search import distant_alternative, self_symmetry
 from mvreg.globalstage.robust import pair_disagreements
 from mvreg.globalstage.scan_model import ScanModel, equally_good, model_fit, scan_model
@@ -274,7 +274,7 @@ def verify_scans(
         )
     _settle_conflicts(out, conflicts, scans)
     if discrete:
-        search_alternatives(out, graph, pre, T_world_scan, voxel, acfg)
+        search_alternatives(out, graph, pre, T_world_scan, voxel, acfg, results)
     return out
 
 
@@ -297,7 +297,7 @@ def _mark_symmetric(out, verified, sym) -> None:
         )
 
 
-def search_alternatives(out, graph, pre, T_world_scan, voxel, acfg) -> None:
+def search_alternatives(out, graph, pre, T_world_scan, voxel, acfg, results=()) -> None:
     """First the verified scans as a whole for a symmetry (a motion mapping them onto
     themselves: :func:`mvreg.globalstage.model_search.self_symmetry`; then every one is
     ``undetermined``); else every verified scan, then every group of verified scans that
@@ -320,7 +320,9 @@ def search_alternatives(out, graph, pre, T_world_scan, voxel, acfg) -> None:
         if out[s].status != "verified" or len(others) < 2:
             continue
         model = scan_model(pre, T_world_scan, others)
-        alt = distant_alternative([s], pre, T_world_scan, others, model, voxel, acfg)
+        alt = distant_alternative(
+            [s], pre, T_world_scan, others, model, voxel, acfg, results=results
+        )
         if alt is not None:
             _mark(out[s], alt, "")
     for group in bridge_groups(graph):
@@ -328,7 +330,9 @@ def search_alternatives(out, graph, pre, T_world_scan, voxel, acfg) -> None:
         if any(out[s].status != "verified" for s in group) or len(others) < 2:
             continue
         model = scan_model(pre, T_world_scan, others)
-        alt = distant_alternative(group, pre, T_world_scan, others, model, voxel, acfg)
+        alt = distant_alternative(
+            group, pre, T_world_scan, others, model, voxel, acfg, results=results
+        )
         if alt is not None:
             for s in group:
                 _mark(out[s], alt, ", ".join(names[k] for k in group if k != s))
@@ -338,8 +342,10 @@ def _check_scan(s, pre, T_world_scan, graph, cycle, main, voxel, acfg, agree_vox
     """(ScanVerification of scan ``s`` before conflicts are settled, its conflicts).
 
     Outside the main block of agreeing pairs (:func:`main_block`), only support from scans
-    of the main block counts: a group that agrees with itself cannot confirm itself. (With
-    no block at all -- the agreeing pairs form a tree -- any two scans' support counts.)"""
+    of the main block counts: a group that agrees with itself cannot confirm itself. With
+    no block at all (the agreeing pairs form a tree), only support from one side of the
+    scan counts (:func:`mvreg.globalstage.graph.one_side`): scans on two sides are placed
+    relative to each other through this scan alone, so they cannot confirm it."""
     names = [p.name for p in pre]
     scans = sorted(T_world_scan)
     v = ScanVerification(status="verified", agreeing_pairs=[names[k] for k in sorted(graph[s])])
@@ -367,6 +373,8 @@ def _check_scan(s, pre, T_world_scan, graph, cycle, main, voxel, acfg, agree_vox
         return v, conflicts
     if main and s not in main:
         support = [k for k in support if k in main]
+    elif not main:
+        support = one_side(graph, s, support)
     problems = _model_problems(overlap, ratio, support, graph[s], v, names, acfg)
     if problems:
         v.status, v.reason = "unverified", "; ".join(problems)
@@ -483,7 +491,7 @@ def verify_and_resolve(
             )
         if search:
             graph = agreeing_graph(pre, results, solved.pair_weight, T, voxel, agree_voxels)
-            search_alternatives(ver, graph, pre, T, voxel, acfg)
+            search_alternatives(ver, graph, pre, T, voxel, acfg, results)
         return ver, {s: v for s, v in ver.items() if v.status != "verified"}
 
     while True:

@@ -13,6 +13,7 @@ import numpy as np
 
 from mvreg.geometry import transform_points
 from mvreg.io.atomic import atomic_path, atomic_write_json
+from mvreg.io.merged_formats import write_merged
 from mvreg.io.poses import write_poses_json, write_poses_kitti, write_poses_tum
 
 
@@ -121,6 +122,9 @@ def write_registration(reg, out: str | Path) -> dict[str, Path]:
         write_poses_kitti(paths["kitti"], poses)
         pts, cols = merged_cloud(reg)
         write_ply(paths["merged"], pts, cols)
+        extra = write_merged(out / "merged", reg, reg.config.output.merged_format)
+        if extra is not None:
+            paths["merged_" + extra.suffix[1:]] = extra
     atomic_write_json(paths["report"], reg.report())
     return paths
 

@@ -109,3 +109,21 @@ def test_georeferenced_scans_keep_their_precision_in_e57():
     back = transform_points(T2, stored.astype(np.float32).astype(np.float64))
     assert np.max(np.abs(back - transform_points(T, pts))) < 1e-4  # << fine voxel / 100
     assert _fit_single_precision(T, pts - pts.mean(axis=0), 0.01)[0] is T  # local: as is
+
+
+def test_a_merged_e57_registers_again_and_its_stored_poses_are_reported(registered, tmp_path):
+    """merged.e57 is a multi-scan E57 with stored poses: registering it again reports how
+    far the new poses are from the stored ones (gauge-free), here the same registration."""
+    from mvreg import register
+
+    _, reg = registered
+    _write(reg, "e57", tmp_path / "first")
+    again = tmp_path / "again"
+    again.mkdir()
+    (tmp_path / "first" / "merged.e57").rename(again / "merged.e57")
+    reg2 = register(again, seed=0)
+    d = reg2.report()["stored_pose_differences"]
+    assert d is not None and len(d["scans"]) == len(reg2.T_world_scan) >= 3
+    assert d["rotation_deg_max"] < 0.1, d
+    assert max(d["translation_at_centroid"]) < reg.scales.fine_voxel, d
+    assert reg.report()["stored_pose_differences"] is None  # PLY files store no pose

@@ -32,6 +32,15 @@ def evaluate_overlap_and_truth(reg, pre, truth) -> None:
     reg.truth_errors = truth_errors(reg, truth)
     if reg.truth_errors is not None:
         reg.truth_errors["truth_overlap_residual"] = truth_residual.result()
+    reg.stored_pose_differences = stored_pose_differences(reg)
+
+
+def stored_pose_differences(reg) -> dict | None:
+    """How far the registered poses are from the poses the files store (E57 scan headers),
+    gauge-free as against a ground truth (:func:`truth_errors`); None with fewer than 2
+    registered scans that have one. Reported, never used to judge the result."""
+    stored = {s.name: s.T_world_scan_hint for s in reg.scans if s.T_world_scan_hint is not None}
+    return truth_errors(reg, stored)
 
 
 def truth_errors(reg, truth) -> dict | None:

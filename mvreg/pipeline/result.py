@@ -53,6 +53,7 @@ class Registration:
     joint_icp: dict | None = None  # the joint point-to-plane ICP after the rounds
     overlap: dict | None = None
     truth_errors: dict | None = None
+    stored_pose_differences: dict | None = None  # against the files' own poses (E57)
     scans: list[Scan] = field(default_factory=list, repr=False)
     source: str | None = None
     skipped_files: list[dict] = field(default_factory=list)  # folder entries not read
@@ -150,6 +151,8 @@ class Registration:
             "joint_icp": self.joint_icp,
             "overlap_residual": self.overlap,
             "ground_truth_errors": self.truth_errors,
+            # Against the poses the files store (E57 scan headers), when 2+ have one.
+            "stored_pose_differences": self.stored_pose_differences,
         }
 
 

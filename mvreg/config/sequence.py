@@ -16,6 +16,15 @@ class SequenceConfig(BaseModel):
 
     model_config = ConfigDict(extra="forbid")
 
+    dataloader: str | None = Field(
+        None,
+        description="read the source with this KISS-ICP dataloader (kitti, generic, rosbag, "
+        "mcap, ouster, ...) instead of as a folder of scan files",
+    )
+    dataloader_sequence: str | None = Field(
+        None, description="the dataloader's sequence argument (KITTI: 00, 01, ...)"
+    )
+    dataloader_max_frames: int | None = Field(None, ge=2, description="read at most this many")
     odometry_voxel_ranges: float = Field(
         0.01, gt=0, le=0.5, description="KISS-ICP voxel / largest point range"
     )

@@ -33,6 +33,7 @@ from mvreg.sequence.odometry import kiss_icp_odometry
 from mvreg.sequence.pairs import chain_poses, sequential_results
 from mvreg.sequence.preprocess import preprocess_range_scan
 from mvreg.sequence.report import evaluate_sequence, sequence_report
+from mvreg.sequence.sources import read_dataloader
 from mvreg.sequence.timestamps import find_gaps, sequence_timestamps
 from mvreg.sequence.tracks import PoseGraphPlan
 
@@ -168,6 +169,14 @@ def register_sequence(
     if sequence is not None:
         cfg = cfg.model_copy(update={"sequence": sequence})
     folder = Path(source) if isinstance(source, (str, Path)) else None
+    sq = cfg.sequence
+    if sq.dataloader is not None:
+        if folder is None:
+            raise ConfigError("sequence.dataloader reads a path, not point arrays")
+        source, names = read_dataloader(
+            sq.dataloader, folder, sq.dataloader_sequence, sq.dataloader_max_frames
+        )
+        folder = None  # frames, not scan files: no timestamps.txt or ground_truth.json
     run = Run(cfg, recorder, progress)
     mode = SequenceMode(folder, timestamps)
     return run_pipeline(run, mode, source, names, truth, result_type=SequenceRegistration)

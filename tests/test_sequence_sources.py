@@ -1,0 +1,94 @@
+"""Sequences read through KISS-ICP's own dataloaders (``sequence.dataloader``): the same
+frames as a folder of files give the same trajectory; unknown names and unreadable
+sources are named."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from typer.testing import CliRunner
+
+from mvreg.cli import app
+from mvreg.errors import ConfigError, InputError
+
+runner = CliRunner()
+
+
+@pytest.fixture(scope="module")
+def frames(tmp_path_factory):
+    """A synthetic LiDAR sequence as PLY files and as KITTI .bin files (x y z intensity,
+    float32)."""
+    from data_synth import synthesize_sequence
+    from mvreg.io.loaders import load_scan_file
+
+    root = tmp_path_factory.mktemp("seqsrc")
+    synthesize_sequence(None, root / "ply", frames=60, points_per_scan=4000, seed=1)
+    bins = root / "bin"
+    bins.mkdir()
+    for f in sorted((root / "ply").glob("*.ply")):
+        pts = load_scan_file(f)[0].points.astype(np.float32)
+        rows = np.column_stack([pts, np.zeros(len(pts), np.float32)])
+        rows.tofile(bins / f"{f.stem}.bin")
+    return root
+
+
+def test_bin_frames_through_the_generic_dataloader_match_the_ply_folder(frames):
+    from mvreg.io.poses import read_poses_json
+    from mvreg.metrics import pose_errors
+    from mvreg.sequence import register_sequence
+
+    reg = register_sequence(frames / "bin", **{"sequence.dataloader": "generic"})
+    assert len(reg.T_world_scan) == 60 and reg.all_registered
+    truth = read_poses_json(frames / "ply" / "ground_truth.json")
+    names = sorted(truth)
+    assert sorted(reg.T_world_scan) == sorted(n.replace(".ply", "") for n in names)
+    est = np.stack([reg.T_world_scan[n.replace(".ply", "")] for n in names])
+    err = pose_errors(est, np.stack([truth[n] for n in names]))
+    assert err.rotation_deg.max() < 0.5, err.summary()
+
+
+def test_unknown_dataloader_and_unreadable_source_are_named(frames, tmp_path):
+    from mvreg.sequence.sources import read_dataloader
+
+    with pytest.raises(ConfigError, match="'kitty' is not one of .*kitti"):
+        read_dataloader("kitty", frames / "bin")
+    with pytest.raises(InputError, match="missing"):
+        read_dataloader("generic", tmp_path / "missing")
+    empty = tmp_path / "empty"
+    empty.mkdir()
+    with pytest.raises(InputError, match="generic dataloader cannot read it"):
+        read_dataloader("generic", empty)
+
+
+def test_cli_sequence_with_a_dataloader(frames, tmp_path):
+    out = tmp_path / "out"
+    r = runner.invoke(
+        app,
+        ["register", str(frames / "bin"), "--out", str(out), "--sequence", "--no-rrd",
+         "--set", "sequence.dataloader=generic", "--set", "sequence.dataloader_max_frames=12"],
+    )  # fmt: skip
+    assert r.exit_code == 0, r.output
+    import json
+
+    poses = json.loads((out / "poses.json").read_text())["poses"]
+    assert len(poses) == 12
+    r = runner.invoke(
+        app,
+        ["register", str(frames / "bin"), "--out", str(tmp_path / "o2"), "--sequence",
+         "--set", "sequence.dataloader=kitty"],
+    )  # fmt: skip
+    assert r.exit_code == 2 and "kitty" in r.output and "\n" not in r.output.strip()
+
+
+@pytest.mark.xfail(
+    strict=True,
+    reason="known: frame 0 of a fast sequence (22 deg per frame) "
+    "is placed ~20 deg off and verified (ground-dominated model check)",
+)
+def test_a_fast_sequence_never_exits_0_with_a_wrong_frame(tmp_path):
+    from data_synth import synthesize_sequence
+    from mvreg.sequence import register_sequence
+
+    synthesize_sequence(None, tmp_path / "fast", frames=24, points_per_scan=4000, seed=1)
+    reg = register_sequence(tmp_path / "fast")
+    assert not reg.all_registered or reg.truth_errors["rotation_deg_max"] <= 2.0

@@ -98,17 +98,17 @@ def test_ply_only_by_default_and_the_format_is_checked(registered, tmp_path):
 def test_georeferenced_scans_keep_their_precision_in_e57():
     """Coordinates ~1e6 in single precision would round by ~0.06: the stored points are
     shifted by their rounded centroid and the pose takes the shift (same world points)."""
-    from mvreg.io.merged_formats import _fit_single_precision
+    from mvreg.io.merged_formats import fit_single_precision
 
     rng = np.random.default_rng(0)
     pts = rng.normal(size=(500, 3)) + np.array([4.5e5, 5.2e6, 300.0])
     T = np.eye(4)
     T[:3, 3] = [1.0, 2.0, 3.0]
-    T2, stored = _fit_single_precision(T, pts, fine_voxel=0.01)
+    T2, stored = fit_single_precision(T, pts, fine_voxel=0.01)
     assert np.max(np.abs(stored)) < 10
     back = transform_points(T2, stored.astype(np.float32).astype(np.float64))
     assert np.max(np.abs(back - transform_points(T, pts))) < 1e-4  # << fine voxel / 100
-    assert _fit_single_precision(T, pts - pts.mean(axis=0), 0.01)[0] is T  # local: as is
+    assert fit_single_precision(T, pts - pts.mean(axis=0), 0.01)[0] is T  # local: as is
 
 
 def test_a_merged_e57_registers_again_and_its_stored_poses_are_reported(registered, tmp_path):

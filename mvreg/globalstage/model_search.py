@@ -42,7 +42,7 @@ from scipy.spatial.transform import Rotation
 from mvreg.config.align import AlignConfig
 from mvreg.executor import single_threaded_blas
 from mvreg.geometry import invert_transform, transform_points
-from mvreg.globalstage.scan_model import ScanModel, model_fit
+from mvreg.globalstage.scan_model import ScanModel, model_fit, normal_matrix
 from mvreg.pairwise.features import FeatureBasis
 from mvreg.pairwise.hypotheses import distinct_poses, ransac_numpy, scan_extent
 from mvreg.pairwise.icp import feature_level_tree, icp_point_to_plane
@@ -301,6 +301,31 @@ def _self_matches(union: FeatureModel, acfg: AlignConfig, far: float, max_points
     return nn[has, first[has]].astype(np.int64), src[has]
 
 
+def axis_turns(points, normals, angles_deg=(60.0, 90.0, 120.0, 180.0)) -> list[np.ndarray]:
+    """World motions turning the surface (``points``, ``normals``) about the axes it is
+    closest to being a body of revolution about, by ``angles_deg`` both ways (180 once).
+    The axes: the rotation-like directions among the two weakest of its point-to-plane
+    normal matrix (a turn about the axis of a body of revolution slides it along itself;
+    located by where that motion is along the axis, not at the centroid, which a partial
+    view moves off the axis)."""
+    H, c, L = normal_matrix(points, normals)
+    _, vecs = np.linalg.eigh(H)
+    out = []
+    for e in vecs.T[:2]:
+        w, t = e[:3], e[3:]
+        if np.linalg.norm(w) < 0.2 * np.linalg.norm(e):
+            continue  # a slide, not a turn
+        axis = w / np.linalg.norm(w)
+        through = c + np.cross(w, t) * L / float(np.dot(w, w))
+        for a in angles_deg:
+            for sign in (1.0,) if a == 180.0 else (1.0, -1.0):
+                M = np.eye(4)
+                M[:3, :3] = Rotation.from_rotvec(sign * np.radians(a) * axis).as_matrix()
+                M[:3, 3] = through - M[:3, :3] @ through
+                out.append(M)
+    return out
+
+
 def self_symmetry(
     pre,
     T_world_scan: dict[int, np.ndarray],
@@ -329,17 +354,22 @@ def self_symmetry(
         q = union.points - union.points.mean(axis=0)
         apart = max(far, 0.2 * float(np.sqrt(np.mean(np.sum(q * q, axis=1)))))
         matches = _self_matches(union, acfg, apart, max_points)
-        if len(matches[0]) < 3:
-            return None
-        _, stats = ransac_numpy(union, union, acfg, 0, None, voxel, matches=matches)
-        candidates = [M for M in stats.get("candidates", []) if _moved(M, union.points) > far]
-        shares = [share_on(union, union, M, acfg, voxel) for M in candidates]
-        order = np.argsort(-np.asarray(shares), kind="stable")
+        tried: list[tuple[np.ndarray, bool]] = []  # (motion, refine it)
+        if len(matches[0]) >= 3:
+            _, stats = ransac_numpy(union, union, acfg, 0, None, voxel, matches=matches)
+            found = [M for M in stats.get("candidates", []) if _moved(M, union.points) > far]
+            shares = [share_on(union, union, M, acfg, voxel) for M in found]
+            tried += [(found[k], True) for k in np.argsort(-np.asarray(shares), kind="stable")]
+            tried = tried[:max_refined]
+        # Turns about the axis of a near body of revolution (a turned part, low poly) map
+        # it onto itself; descriptor matches between facets do not propose them (they find
+        # one facet step), and ICP would slide a turn back along the axis: taken as they are.
+        tried += [(M, False) for M in axis_turns(union.points, union.normals)]
         stride = max(1, len(model.points) // max_points)
         src, src_n = model.points[::stride], model.normals[::stride]
         noise = float(np.median(model.noise))
-        for k in order[:max_refined]:
-            M = refine_on_model(candidates[k], src, src_n, model, voxel, acfg)
+        for M, refine in tried:
+            M = refine_on_model(M, src, src_n, model, voxel, acfg) if refine else M
             if _moved(M, src) <= far:
                 continue
             overlap, ratio, *_ = model_fit(

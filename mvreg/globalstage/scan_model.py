@@ -82,3 +82,14 @@ def equally_good(overlap, ratio, base_overlap, base_ratio, n, acfg: AlignConfig)
     if overlap < base_overlap * 0.9 - spread:
         return False
     return ratio <= base_ratio * 1.25 + 3.0 / np.sqrt(max(n, 1))
+
+
+def normal_matrix(points: np.ndarray, normals: np.ndarray) -> tuple[np.ndarray, np.ndarray, float]:
+    """6x6 point-to-plane normal matrix per point of matched (points, model normals),
+    rotation about the points' centroid scaled by their rms radius ``L``: rows
+    ``[((p - c) x n) / L, n]``. Returns (H, c, L)."""
+    c = points.mean(axis=0)
+    q = points - c
+    L = float(np.sqrt(np.mean(np.sum(q * q, axis=1)))) + 1e-300
+    a = np.concatenate([np.cross(q, normals) / L, normals], axis=1)
+    return a.T @ a / max(len(a), 1), c, L

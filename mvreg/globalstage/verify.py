@@ -84,7 +84,13 @@ from mvreg.geometry import invert_transform, rotation_from_vector, transform_poi
 from mvreg.globalstage.graph import bridge_groups, main_block, on_cycle, one_side
 from mvreg.globalstage.model_search import distant_alternative, self_symmetry
 from mvreg.globalstage.robust import pair_disagreements
-from mvreg.globalstage.scan_model import ScanModel, equally_good, model_fit, scan_model
+from mvreg.globalstage.scan_model import (
+    ScanModel,
+    equally_good,
+    model_fit,
+    normal_matrix,
+    scan_model,
+)
 from mvreg.pairwise.icp import icp_point_to_plane
 from mvreg.pairwise.scoring import free_space_violation, unseen_violation
 
@@ -150,17 +156,6 @@ def agreeing_graph(
 
 
 # ---------------------------------------------------------------------------- evidence (b)
-
-
-def normal_matrix(points: np.ndarray, normals: np.ndarray) -> tuple[np.ndarray, np.ndarray, float]:
-    """6x6 point-to-plane normal matrix per point of matched (points, model normals),
-    rotation about the points' centroid scaled by their rms radius ``L``: rows
-    ``[((p - c) x n) / L, n]``. Returns (H, c, L)."""
-    c = points.mean(axis=0)
-    q = points - c
-    L = float(np.sqrt(np.mean(np.sum(q * q, axis=1)))) + 1e-300
-    a = np.concatenate([np.cross(q, normals) / L, normals], axis=1)
-    return a.T @ a / max(len(a), 1), c, L
 
 
 def _describe(e: np.ndarray, c: np.ndarray, L: float) -> str:

@@ -94,7 +94,7 @@ def write_merged_laz(path: Path, reg) -> None:
         las.write(str(tmp), do_compress=True)
 
 
-def _fit_single_precision(T, pts, fine_voxel):
+def fit_single_precision(T, pts, fine_voxel):
     """pye57 stores coordinates as float32: when that would round them by more than a
     hundredth of the fine voxel (georeferenced coordinates), the points are stored shifted
     by their rounded centroid and the shift folded into the pose (same world points)."""
@@ -115,7 +115,7 @@ def write_merged_e57(path: Path, reg) -> None:
         e57 = pye57.E57(str(tmp), mode="w")
         try:
             for name, T, pts, colors in _registered(reg):
-                T, pts = _fit_single_precision(T, pts, reg.scales.fine_voxel)
+                T, pts = fit_single_precision(T, pts, reg.scales.fine_voxel)
                 data = {
                     "cartesianX": np.ascontiguousarray(pts[:, 0], np.float64),
                     "cartesianY": np.ascontiguousarray(pts[:, 1], np.float64),

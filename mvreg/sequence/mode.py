@@ -168,6 +168,6 @@ def register_sequence(
     if sequence is not None:
         cfg = cfg.model_copy(update={"sequence": sequence})
     folder = Path(source) if isinstance(source, (str, Path)) else None
-    run = Run(cfg, recorder, progress)
     mode = SequenceMode(folder, timestamps)
-    return run_pipeline(run, mode, source, names, truth, result_type=SequenceRegistration)
+    with Run(cfg, recorder, progress) as run:
+        return run_pipeline(run, mode, source, names, truth, result_type=SequenceRegistration)

@@ -78,6 +78,8 @@ class DaskExecutor:
         """Start a ``LocalCluster`` of ``workers`` worker processes (no dashboard)."""
         from distributed import Client, LocalCluster
 
+        from mvreg.distributed.plugins import IgnoreInterrupt
+
         if workers < 1:
             raise ConfigError(f"workers must be >= 1, got {workers}")
         cluster = LocalCluster(
@@ -89,6 +91,7 @@ class DaskExecutor:
         )
         try:
             client = Client(cluster)
+            client.register_plugin(IgnoreInterrupt(), name="mvreg-ignore-sigint")
         except BaseException:
             cluster.close()
             raise

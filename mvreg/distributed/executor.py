@@ -87,6 +87,8 @@ class DaskExecutor:
             threads_per_worker=threads_per_worker,
             processes=True,
             dashboard_address=None,
+            # no dashboard; the scheduler's HTTP routes on a free local port, not 8787
+            scheduler_kwargs={"dashboard": False, "dashboard_address": "127.0.0.1:0"},
             silence_logs=logging.ERROR,
         )
         try:

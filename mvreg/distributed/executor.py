@@ -180,9 +180,13 @@ class DaskExecutor:
             raise
         return out
 
+    def forget(self) -> None:
+        """Release the data shared so far (the workers drop it and their caches)."""
+        self._data.clear()
+
     def close(self) -> None:
         """Release the scattered data, close the client and a cluster started here."""
-        self._data.clear()
+        self.forget()
         try:
             self.client.close()
         finally:

@@ -8,8 +8,11 @@ import json
 import operator
 import os
 import pickle
+import signal
+import subprocess
 import sys
 import time
+from pathlib import Path
 
 import cloudpickle
 import numpy as np
@@ -135,6 +138,57 @@ def test_a_scan_task_error_names_the_scan(scans_dir, ex):
 def test_workers_and_scheduler_are_exclusive():
     with pytest.raises(ConfigError, match="workers"):
         load_config(workers=2, scheduler="tcp://127.0.0.1:8786")
+
+
+def test_ctrl_c_exits_130_with_no_output_and_no_process_left(scans_dir, tmp_path):
+    import psutil
+
+    out = tmp_path / "out"
+    cmd = [sys.executable, "-m", "mvreg.cli", "register", str(scans_dir), "--out", str(out)]
+    root = str(Path(__file__).resolve().parents[1])
+    proc = subprocess.Popen(
+        [*cmd, "--workers", "2", "--no-rrd"],
+        env=dict(os.environ, PYTHONPATH=root, OPENBLAS_NUM_THREADS="1"),
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        text=True,
+        start_new_session=True,  # its own process group, as a terminal's foreground job
+    )
+    deadline = time.monotonic() + 60
+    while time.monotonic() < deadline and len(_ignoring_sigint(proc.pid)) < 2:
+        time.sleep(0.2)  # until the cluster's two worker processes have started
+    time.sleep(0.5)
+    os.killpg(proc.pid, signal.SIGINT)  # Ctrl-C reaches the whole group
+    _, err = proc.communicate(timeout=60)
+    assert proc.returncode == 130, err
+    assert "mvreg: interrupted" in err and "Traceback" not in err
+    assert not out.exists() and list(tmp_path.iterdir()) == []
+    time.sleep(0.5)
+    group = [p for p in psutil.process_iter(["status"]) if _pgid(p.pid) == proc.pid]
+    assert [p for p in group if p.info["status"] != psutil.STATUS_ZOMBIE] == []  # all exited
+
+
+def _ignoring_sigint(pid):
+    """The worker processes of ``pid`` that ignore SIGINT (its plugin has run)."""
+    import psutil
+
+    out = []
+    for child in psutil.Process(pid).children():
+        try:
+            status = open(f"/proc/{child.pid}/status").read()
+            ignored = int(status.split("SigIgn:")[1].split()[0], 16)
+            if "spawn_main" in " ".join(child.cmdline()) and ignored & (1 << (signal.SIGINT - 1)):
+                out.append(child)
+        except (psutil.Error, OSError, IndexError):
+            pass
+    return out
+
+
+def _pgid(pid):
+    try:
+        return os.getpgid(pid)
+    except OSError:
+        return None
 
 
 def _sleep(seconds, item):

@@ -82,20 +82,22 @@ class DaskExecutor:
 
         if workers < 1:
             raise ConfigError(f"workers must be >= 1, got {workers}")
-        cluster = LocalCluster(
-            n_workers=workers,
-            threads_per_worker=threads_per_worker,
-            processes=True,
-            dashboard_address=None,
-            # no dashboard; the scheduler's HTTP routes on a free local port, not 8787
-            scheduler_kwargs={"dashboard": False, "dashboard_address": "127.0.0.1:0"},
-            silence_logs=logging.ERROR,
-        )
+        cluster = None
         try:
+            cluster = LocalCluster(
+                n_workers=workers,
+                threads_per_worker=threads_per_worker,
+                processes=True,
+                dashboard_address=None,
+                # no dashboard; the scheduler's HTTP routes on a free local port, not 8787
+                scheduler_kwargs={"dashboard": False, "dashboard_address": "127.0.0.1:0"},
+                silence_logs=logging.CRITICAL,  # shutdown chatter; task errors come back
+            )
             client = Client(cluster)
             client.register_plugin(IgnoreInterrupt(), name="mvreg-ignore-sigint")
         except BaseException:
-            cluster.close()
+            if cluster is not None:
+                cluster.close()
             raise
         return cls(client, cluster, owns_cluster=True)
 

@@ -52,17 +52,37 @@ def time_pairwise(pre, scales, pairs, cfg, executor, repeats: int) -> dict:
     """Wall times of the pairwise stage on ``executor``; the poses of the last run."""
     from mvreg.pairwise import align_pairs
 
-    walls, loads, poses = [], [], None
+    walls, loads, cpus, poses = [], [], [], None
     for _ in range(repeats):
         if hasattr(executor, "forget"):
             executor.forget()  # the scans are sent again: every repetition pays for it
-        load0 = os.getloadavg()[0]
+        load0, cpu0 = os.getloadavg()[0], worker_cpu(executor)
         t0 = time.perf_counter()
         res = align_pairs(pre, pairs, cfg.align, cfg.seed, executor=executor, scales=scales)
         walls.append(time.perf_counter() - t0)
         loads.append((load0, os.getloadavg()[0]))
+        cpus.append([b - a for a, b in zip(cpu0, worker_cpu(executor), strict=True)])
         poses = np.stack([r.T_i_j for r in res])
-    return {"walls": walls, "median": float(np.median(walls)), "loads": loads, "poses": poses}
+    return {
+        "walls": walls,
+        "median": float(np.median(walls)),
+        "loads": loads,
+        "worker_cpu_s": cpus,
+        "poses": poses,
+    }
+
+
+def worker_cpu(executor) -> list[float]:
+    """CPU seconds (user + system) used so far by each worker process (in-process: this
+    process), in the order of the workers' addresses."""
+
+    def cpu() -> float:
+        t = os.times()
+        return t.user + t.system
+
+    if not hasattr(executor, "client"):
+        return [cpu()]
+    return [v for _, v in sorted(executor.client.run(cpu).items())]
 
 
 def worker_memory(executor) -> list[float]:
@@ -157,12 +177,15 @@ def write_report(a, rows, identical, n_pairs, scan_bytes, load_start) -> None:
         "the cluster is started and its workers have imported Open3D before timing.",
         f"- Pair poses identical bit for bit in every setting: **{identical}**",
         "",
-        "| setting | median s | runs (s) | 1-min load before -> after each run |",
-        "|---|---|---|---|",
+        "| setting | median s | runs (s) | CPU s per worker process, each run | "
+        "1-min load before -> after each run |",
+        "|---|---|---|---|---|",
     ]
     for name, r in rows.items():
         walls = ", ".join(f"{w:.2f}" for w in r["walls"])
-        L.append(f"| {name} | {r['median']:.2f} | {walls} | {_loads(r)} |")
+        cpu = "; ".join(" + ".join(f"{c:.1f}" for c in run) for run in r["worker_cpu_s"])
+        cpu = cpu if name.startswith("workers") else f"({cpu}: the whole process)"
+        L.append(f"| {name} | {r['median']:.2f} | {walls} | {cpu} | {_loads(r)} |")
     L += [
         "",
         f"**Speedup of 2 worker processes over 1: {speedup:.2f}x** (target >= 1.6x; "

@@ -119,7 +119,9 @@ def measure(a, pre, scales, pairs, cfg) -> dict:
         with DaskExecutor.local(n) as ex:
             start = time.perf_counter() - t0
             warm(ex)
+            idle = worker_memory(ex)
             r = time_pairwise(pre, scales, pairs, cfg, ex, a.repeats)
+            r["worker_rss_idle_mib"] = idle
             r |= {"start_cluster": start, "task_bytes": ex.task_bytes}
             r |= {"shared_bytes": ex.shared_bytes, "worker_rss_mib": worker_memory(ex)}
         rows[f"workers {n}"] = r
@@ -193,6 +195,8 @@ def write_report(a, rows, identical, n_pairs, scan_bytes, load_start) -> None:
         "",
     ]
     if w2:
+        grown = np.subtract(w2["worker_rss_mib"], w2["worker_rss_idle_mib"])
+        per_scan = float(np.mean(grown)) / len(scan_bytes)
         L += [
             f"- Pickled size of a pair task: {w2['task_bytes']} bytes; of one preprocessed scan: "
             f"{min(scan_bytes) / 2**20:.2f}-{max(scan_bytes) / 2**20:.2f} MiB; of all "
@@ -201,7 +205,11 @@ def write_report(a, rows, identical, n_pairs, scan_bytes, load_start) -> None:
             f"- Local cluster start: {w2['start_cluster']:.1f} s (2 workers); resident memory "
             "per worker after the runs: "
             + ", ".join(f"{m:.0f} MiB" for m in w2["worker_rss_mib"])
-            + f" (1 worker: {', '.join(f'{m:.0f} MiB' for m in w1['worker_rss_mib'])}).",
+            + f" (1 worker: {', '.join(f'{m:.0f} MiB' for m in w1['worker_rss_mib'])}); "
+            "before any scan, with Open3D imported: "
+            + ", ".join(f"{m:.0f} MiB" for m in w2["worker_rss_idle_mib"])
+            + f"; so about {per_scan:.1f} MiB per scan on each worker (the preprocessed "
+            "scan and its caches).",
         ]
     (a.out / "workers.md").write_text("\n".join(L) + "\n")
     js = {k: {x: y for x, y in r.items() if x != "poses"} for k, r in rows.items()}

@@ -12,7 +12,14 @@ from __future__ import annotations
 import json
 from pathlib import Path
 
-from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_validator
+from pydantic import (
+    BaseModel,
+    ConfigDict,
+    Field,
+    ValidationError,
+    ValidationInfo,
+    field_validator,
+)
 
 from mvreg.config.align import AlignConfig, SearchConfig
 from mvreg.config.output import OutputConfig
@@ -77,11 +84,12 @@ class RegisterConfig(BaseModel):
     output: OutputConfig = Field(default_factory=OutputConfig)
     sequence: SequenceConfig = Field(default_factory=SequenceConfig)
 
-    @model_validator(mode="after")
-    def _one_cluster(self) -> RegisterConfig:
-        if self.workers is not None and self.scheduler is not None:
+    @field_validator("scheduler")
+    @classmethod
+    def _one_cluster(cls, scheduler: str | None, info: ValidationInfo) -> str | None:
+        if scheduler is not None and info.data.get("workers") is not None:
             raise ValueError("give either workers (a local Dask cluster) or scheduler, not both")
-        return self
+        return scheduler
 
 
 def load_config(path: str | Path | None = None, **overrides) -> RegisterConfig:

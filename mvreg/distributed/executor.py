@@ -102,7 +102,7 @@ class DaskExecutor:
         return cls(client, cluster, owns_cluster=True)
 
     @classmethod
-    def connect(cls, address: str, timeout: float = 30.0) -> DaskExecutor:
+    def connect(cls, address: str, timeout: float = 10.0) -> DaskExecutor:
         """Connect to a running scheduler and wait (up to ``timeout`` s) for a worker."""
         from distributed import Client
 

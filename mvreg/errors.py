@@ -75,3 +75,20 @@ class OutputExistsError(InputError):
 
 class SolverError(MvregError):
     """A numerical failure inside a solver."""
+
+
+class TaskError(MvregError):
+    """A per-scan or per-pair task failed (in-process or on a Dask worker).
+
+    Attributes:
+        task: what the task worked on, e.g. ``"pair scan_001.ply, scan_004.ply"``.
+        reason: the original error, as ``"Type: message"``.
+    """
+
+    def __init__(self, task: str, reason: str):
+        self.task = task
+        self.reason = reason
+        super().__init__(f"{task}: {reason}")
+
+    def __reduce__(self):  # pickled back from a worker process
+        return (type(self), (self.task, self.reason))

@@ -16,7 +16,8 @@ app = typer.Typer()
 
 @app.command(
     epilog="Examples:  mvreg register scans/ --out result/ --refine 3 --seed 0\n\n"
-    "mvreg register scans/ --out result/ --set align.ransac_max_iterations=8000"
+    "mvreg register scans/ --out result/ --set align.ransac_max_iterations=8000\n\n"
+    "mvreg register scans/ --out result/ --workers 4   (a local Dask cluster)"
 )
 def register(
     folder: Annotated[
@@ -32,8 +33,23 @@ def register(
         int | None, typer.Option(help="Rounds of multiview ICP refinement (default 3).")
     ] = None,
     seed: Annotated[int | None, typer.Option(help="Seed: same seed, same poses.")] = None,
+    threads: Annotated[
+        int | None,
+        typer.Option(help="In-process threads for per-scan and per-pair work (default 2)."),
+    ] = None,
     workers: Annotated[
-        int | None, typer.Option(help="Threads for per-scan and per-pair work (default 2).")
+        int | None,
+        typer.Option(
+            help="Start a local Dask cluster of N worker processes for preprocessing and "
+            "pairwise alignment (default: none, in-process threads)."
+        ),
+    ] = None,
+    scheduler: Annotated[
+        str | None,
+        typer.Option(
+            help="Run preprocessing and pairwise alignment on a running Dask cluster: the "
+            "scheduler's address, e.g. tcp://10.0.0.5:8786."
+        ),
     ] = None,
     config: Annotated[
         Path | None, typer.Option(help="JSON/YAML config file (stage -> settings).")
@@ -66,7 +82,9 @@ def register(
                 "solve.solver": solver,
                 "refine.rounds": refine,
                 "seed": seed,
+                "threads": threads,
                 "workers": workers,
+                "scheduler": scheduler,
             },
         )
         code = register_folder(

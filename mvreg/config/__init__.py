@@ -12,7 +12,14 @@ from __future__ import annotations
 import json
 from pathlib import Path
 
-from pydantic import BaseModel, ConfigDict, Field, ValidationError
+from pydantic import (
+    BaseModel,
+    ConfigDict,
+    Field,
+    ValidationError,
+    ValidationInfo,
+    field_validator,
+)
 
 from mvreg.config.align import AlignConfig, SearchConfig
 from mvreg.config.output import OutputConfig
@@ -47,7 +54,19 @@ class RegisterConfig(BaseModel):
     model_config = ConfigDict(extra="forbid")
 
     seed: int = Field(0, ge=0, description="same seed, same poses")
-    workers: int = Field(2, ge=1, description="threads for per-scan and per-pair work")
+    threads: int = Field(2, ge=1, description="in-process threads for per-scan and per-pair work")
+    workers: int | None = Field(
+        None,
+        ge=1,
+        description="worker processes of a local Dask cluster for preprocessing and pairwise "
+        "alignment (None: in-process threads)",
+    )
+    scheduler: str | None = Field(
+        None,
+        min_length=1,
+        description="address of a running Dask scheduler (tcp://host:8786) for preprocessing "
+        "and pairwise alignment, instead of workers",
+    )
     min_points: int = Field(100, ge=3, description="a scan needs at least this many points")
     max_points_per_scan: int = Field(
         50_000_000,
@@ -64,6 +83,13 @@ class RegisterConfig(BaseModel):
     refine: RefineConfig = Field(default_factory=RefineConfig)
     output: OutputConfig = Field(default_factory=OutputConfig)
     sequence: SequenceConfig = Field(default_factory=SequenceConfig)
+
+    @field_validator("scheduler")
+    @classmethod
+    def _one_cluster(cls, scheduler: str | None, info: ValidationInfo) -> str | None:
+        if scheduler is not None and info.data.get("workers") is not None:
+            raise ValueError("give either workers (a local Dask cluster) or scheduler, not both")
+        return scheduler
 
 
 def load_config(path: str | Path | None = None, **overrides) -> RegisterConfig:

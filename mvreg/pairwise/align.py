@@ -24,7 +24,7 @@ from collections.abc import Callable, Sequence
 import numpy as np
 
 from mvreg.config.align import AlignConfig, SearchConfig
-from mvreg.executor import Executor, make_executor
+from mvreg.executor import Executor, make_executor, map_shared
 from mvreg.pairwise.aligners import make_aligner
 from mvreg.pairwise.preprocess import PreprocessedScan
 from mvreg.pairwise.result import PairResult, pair_seed
@@ -55,16 +55,21 @@ def align_pairs(
     cfg = cfg or AlignConfig()
     aligner = make_aligner(method, cfg, search, scales=scales, executor=1)
     aligner.prepare(pre)  # run-wide state and shared caches, before the threads start
-
-    def run(pair: tuple[int, int]) -> PairResult:
-        i, j = pair
-        return aligner.align(pre[i], pre[j], None, pair_seed(seed, i, j), i=i, j=j)
-
     # Open3D's RANSAC is reproducible on one thread only.
     executor = make_executor(1 if cfg.ransac_backend == "open3d" else executor)
-    results = executor.map(run, pairs, progress)
+    labels = [f"pair {pre[i].name}, {pre[j].name}" for i, j in pairs]
+    shared = (aligner, list(pre), seed)  # sent to each worker once (map_shared)
+    results = map_shared(executor, align_task, shared, pairs, progress, labels)
     reject_relative_outliers(results, cfg)
     return results
+
+
+def align_task(shared: tuple, pair: tuple[int, int]) -> PairResult:
+    """One pair as a task: ``shared`` is (aligner, preprocessed scans, run seed); the
+    pair's seed comes from the run seed and the pair (:func:`pair_seed`)."""
+    aligner, pre, seed = shared
+    i, j = pair
+    return aligner.align(pre[i], pre[j], None, pair_seed(seed, i, j), i=i, j=j)
 
 
 def reject_relative_outliers(results: Sequence[PairResult], cfg: AlignConfig | None = None):

@@ -48,7 +48,7 @@ from scipy.spatial import cKDTree
 
 from mvreg.config.preprocess import PreprocessConfig
 from mvreg.errors import ConfigError
-from mvreg.executor import Executor, make_executor, single_threaded_blas
+from mvreg.executor import Executor, make_executor, map_shared, single_threaded_blas
 from mvreg.scales import Scales
 
 if TYPE_CHECKING:
@@ -101,6 +101,13 @@ class PreprocessedScan:
             f"fine_points={len(self.fine_points)}, voxel_size={self.voxel_size:.4g}, "
             f"noise={self.noise:.3g}, orientation={self.orientation!r})"
         )
+
+    def __getstate__(self) -> dict:
+        """Pickled (sent to a Dask worker) without the caches, which hold Open3D objects;
+        the worker rebuilds them on demand from the arrays."""
+        state = self.__dict__.copy()
+        state["_cache"] = {}
+        return state
 
     # Open3D objects and KD-trees, built once on demand.
     def o3d_cloud(self, level: str = "feature"):
@@ -188,23 +195,32 @@ def derive_voxel_size(
         return float(cfg.voxel_size)
     if not scans:
         raise ConfigError("cannot derive a voxel size from zero scans")
-    target = cfg.target_points_per_scan
-
-    def one(pts: np.ndarray) -> tuple[float, float]:
-        spacing = median_spacing(pts)
-        if not spacing > 0:  # duplicated points: fall back on the extent
-            spacing = float(np.linalg.norm(np.ptp(pts, axis=0))) / np.sqrt(len(pts))
-        voxel = spacing * np.sqrt(max(len(pts), 1) / target)
-        for _ in range(2):
-            voxel *= np.sqrt(_voxel_count(pts, voxel) / target)
-        return voxel, spacing
-
-    measured = make_executor(executor).map(one, [scan.points for scan in scans])
+    measured = map_shared(
+        make_executor(executor), measure_voxel, cfg.target_points_per_scan, scans,
+        labels=[f"scan {scan.name}" for scan in scans],
+    )  # fmt: skip
     sizes, spacings = zip(*measured, strict=True)
     voxel = max(float(np.median(sizes)), cfg.min_voxel_spacings * float(np.median(spacings)))
     if not np.isfinite(voxel) or voxel <= 0:
         raise ConfigError("could not derive a voxel size from the data (degenerate scans)")
     return voxel
+
+
+def measure_voxel(target: int, scan: Scan) -> tuple[float, float]:
+    """(voxel keeping about ``target`` points of ``scan``, its median point spacing)."""
+    pts = scan.points
+    spacing = median_spacing(pts)
+    if not spacing > 0:  # duplicated points: fall back on the extent
+        spacing = float(np.linalg.norm(np.ptp(pts, axis=0))) / np.sqrt(len(pts))
+    voxel = spacing * np.sqrt(max(len(pts), 1) / target)
+    for _ in range(2):
+        voxel *= np.sqrt(_voxel_count(pts, voxel) / target)
+    return voxel, spacing
+
+
+def scan_spacing(_shared, scan: Scan) -> float:
+    """:func:`median_spacing` of a scan's points (a task of :func:`map_shared`)."""
+    return median_spacing(scan.points)
 
 
 def _estimate_normals(pcd, radius: float, max_nn: int) -> None:
@@ -237,8 +253,9 @@ MIN_VOXEL_SPACINGS = 0.1
 def check_given_voxel(voxel: float, scans: Sequence[Scan], executor: Executor | int = 2):
     """ConfigError naming the value when a given voxel is absurd for the data: far below
     the scans' median point spacing (every point its own voxel)."""
+    labels = [f"scan {s.name}" for s in scans]
     spacing = float(
-        np.median(make_executor(executor).map(median_spacing, [s.points for s in scans]))
+        np.median(map_shared(make_executor(executor), scan_spacing, None, scans, labels=labels))
     )
     if spacing > 0 and voxel < MIN_VOXEL_SPACINGS * spacing:
         raise ConfigError(
@@ -306,7 +323,16 @@ def preprocess_all(
     the calling thread) as each scan is done, in that order."""
     cfg = cfg or PreprocessConfig()
     voxel_size = check_voxel_size(voxel_size)
-    return make_executor(executor).map(lambda s: _preprocess(s, voxel_size, cfg), scans, progress)
+    labels = [f"preprocessing scan {s.name}" for s in scans]
+    ex = make_executor(executor)
+    return map_shared(ex, preprocess_task, (voxel_size, cfg), scans, progress, labels)
+
+
+def preprocess_task(shared: tuple[float, PreprocessConfig], scan: Scan) -> PreprocessedScan:
+    """One scan's preprocessing as a task: ``shared`` is (voxel, section)."""
+    voxel_size, cfg = shared
+    with single_threaded_blas():
+        return _preprocess(scan, voxel_size, cfg)
 
 
 def _preprocess(scan: Scan, v: float, cfg: PreprocessConfig) -> PreprocessedScan:

@@ -52,8 +52,8 @@ def register(
             alignment (benchmarks and tests use it to inject wrong pairs).
     """
     cfg = config if config is not None else load_config(**overrides)
-    run = Run(cfg, recorder, progress)
-    return run_pipeline(run, UnorderedMode(pair_hook), source, names, truth)
+    with Run(cfg, recorder, progress) as run:
+        return run_pipeline(run, UnorderedMode(pair_hook), source, names, truth)
 
 
 def run_pipeline(run: Run, mode: Mode, source, names=None, truth=None, result_type=Registration):
@@ -73,7 +73,7 @@ def run_pipeline(run: Run, mode: Mode, source, names=None, truth=None, result_ty
 
     prog.stage("global solve")
     ctx = GlobalContext(
-        cfg, scales.voxel, run.executor, TrackSolver(cfg.solve, cfg.seed, run.on_iteration), scans
+        cfg, scales.voxel, run.local, TrackSolver(cfg.solve, cfg.seed, run.on_iteration), scans
     )
     t_verify = time.perf_counter()
     out, verification, dropped = GlobalStage(graph.plan).run_verified(

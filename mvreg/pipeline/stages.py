@@ -86,8 +86,8 @@ class UnorderedMode:
             executor=run.executor, scales=scales,
         )  # fmt: skip
         results = connect_unconnected(
-            pre, results, cfg.align, cfg.search, executor=run.executor, scales=scales
-        )
+            pre, results, cfg.align, cfg.search, executor=run.local, scales=scales
+        )  # the rotation search stays in-process (one scan at a time)
         if self.pair_hook is not None:
             results = self.pair_hook(pre, results)
         run.timed("pairwise")

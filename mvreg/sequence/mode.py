@@ -177,6 +177,6 @@ def register_sequence(
             sq.dataloader, folder, sq.dataloader_sequence, sq.dataloader_max_frames
         )
         folder = None  # frames, not scan files: no timestamps.txt or ground_truth.json
-    run = Run(cfg, recorder, progress)
     mode = SequenceMode(folder, timestamps)
-    return run_pipeline(run, mode, source, names, truth, result_type=SequenceRegistration)
+    with Run(cfg, recorder, progress) as run:
+        return run_pipeline(run, mode, source, names, truth, result_type=SequenceRegistration)

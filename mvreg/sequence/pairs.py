@@ -83,7 +83,7 @@ def align_with_guesses(
 ) -> list[PairResult]:
     """ICP of each pair (i, j) from each of its guesses ``(label, T_i_j)`` (skipping a
     guess within half a voxel of one already tried), keeping the better result
-    (:func:`_better`). Runs on ``cfg.workers`` threads; results in the order
+    (:func:`_better`). Runs on ``cfg.threads`` threads; results in the order
     of ``pairs`` with ``stats["kind"] = kind`` and ``stats["init"]`` = the guess's label.
     """
     icp_guess = make_aligner("icp-guess", cfg.align, cfg.search)
@@ -102,7 +102,7 @@ def align_with_guesses(
         best.stats["guesses_tried"] = len(tried)
         return best
 
-    return threads_map(run, list(range(len(pairs))), cfg.workers, advance)
+    return threads_map(run, list(range(len(pairs))), cfg.threads, advance)
 
 
 def relative_pose(T_scan: np.ndarray, i: int, j: int) -> np.ndarray:
@@ -202,7 +202,7 @@ def ransac_fallback(
         return alt if alt.accepted else old
 
     out = list(results)
-    for k, res in zip(todo, threads_map(run, todo, cfg.workers, advance), strict=True):
+    for k, res in zip(todo, threads_map(run, todo, cfg.threads, advance), strict=True):
         out[k] = res
     return out
 

@@ -139,7 +139,7 @@ def refine_pose_graph(
             return rescore(new, pre[r.i], pre[r.j], cfg.align)
 
         changed = 0
-        for n, new in zip(todo, threads_map(run, todo, cfg.workers), strict=True):
+        for n, new in zip(todo, threads_map(run, todo, cfg.threads), strict=True):
             if new.accepted:
                 results[n] = new
                 changed += 1

@@ -1,0 +1,222 @@
+"""Preprocessing and pairwise alignment as Dask tasks, against a real LocalCluster of two
+worker processes: the same poses bit for bit as in-process, small tasks, errors that name
+the pair or scan, an interrupt that cancels the tasks, a lost worker's task retried."""
+
+from __future__ import annotations
+
+import json
+import operator
+import os
+import pickle
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import cloudpickle
+import numpy as np
+import pytest
+from typer.testing import CliRunner
+
+from data_synth import synthesize_scans
+from mvreg.cli import app
+from mvreg.config import AlignConfig, load_config
+from mvreg.distributed import DaskExecutor
+from mvreg.errors import ConfigError, TaskError
+from mvreg.executor import map_shared
+from mvreg.pairwise import align_pairs, derive_scales, preprocess_all, with_noise
+from mvreg.pipeline import register
+from mvreg.pipeline.load import load_source
+from mvreg.pipeline.run import NoProgress
+
+distributed = pytest.importorskip("distributed")
+
+# The helper tasks below travel to the worker processes by value.
+cloudpickle.register_pickle_by_value(sys.modules[__name__])
+
+
+@pytest.fixture(scope="module")
+def cluster():
+    c = distributed.LocalCluster(
+        n_workers=2,
+        threads_per_worker=1,
+        processes=True,
+        dashboard_address=None,
+        scheduler_kwargs={"dashboard": False, "dashboard_address": "127.0.0.1:0"},
+    )
+    yield c
+    c.close()
+
+
+@pytest.fixture(scope="module")
+def ex(cluster):
+    with DaskExecutor(distributed.Client(cluster)) as e:
+        yield e
+
+
+@pytest.fixture(scope="module")
+def scans_dir(tmp_path_factory):
+    folder = tmp_path_factory.mktemp("dist") / "scans"
+    synthesize_scans("builtin", folder, views=7, points_per_scan=2500, seed=0, random_frames=True)
+    return folder
+
+
+@pytest.fixture(scope="module")
+def in_process(scans_dir):
+    return register(scans_dir, load_config(seed=0))
+
+
+@pytest.fixture(scope="module")
+def preprocessed(scans_dir, ex):
+    scans = load_source(scans_dir, None, 100, 10**7, None, NoProgress(), "registration").scans
+    scales = derive_scales(scans, None, ex)
+    pre = preprocess_all(scans, scales.voxel, None, ex)
+    return pre, with_noise(scales, pre)
+
+
+def test_poses_bit_identical_in_process_and_on_a_scheduler_address(in_process, scans_dir, cluster):
+    on_cluster = register(scans_dir, load_config(seed=0, scheduler=cluster.scheduler_address))
+    assert sorted(on_cluster.T_world_scan) == sorted(in_process.T_world_scan)
+    assert len(in_process.T_world_scan) == 7
+    for name, T in in_process.T_world_scan.items():
+        assert np.array_equal(on_cluster.T_world_scan[name], T), name
+    a = [(p["scans"], p["accepted"], p["overlap_ratio"]) for p in in_process.pairs]
+    b = [(p["scans"], p["accepted"], p["overlap_ratio"]) for p in on_cluster.pairs]
+    assert a == b
+    assert on_cluster.config.scheduler == cluster.scheduler_address
+    assert in_process.truth_errors["rotation_deg_max"] < 1.0
+
+
+def test_cli_workers_2_exit_0_same_poses(in_process, scans_dir, tmp_path):
+    out = tmp_path / "out"
+    r = CliRunner().invoke(
+        app, ["register", str(scans_dir), "--out", str(out), "--workers", "2", "--no-rrd"]
+    )
+    assert r.exit_code == 0, r.output
+    poses = json.loads((out / "poses.json").read_text())["poses"]
+    assert sorted(poses) == sorted(in_process.T_world_scan)
+    for name, T in in_process.T_world_scan.items():
+        assert np.array_equal(np.array(poses[name]), T), name
+    report = json.loads((out / "report.json").read_text())
+    assert report["config"]["workers"] == 2 and report["config"]["threads"] == 2
+    assert report["timings_s"]["start_cluster"] > 0
+
+
+def test_pair_tasks_are_small_and_the_scans_are_on_every_worker(preprocessed, ex):
+    pre, scales = preprocessed
+    pairs = [(0, 1), (0, 2), (1, 2), (2, 3)]
+    results = align_pairs(pre, pairs, AlignConfig(), 0, executor=ex, scales=scales)
+    assert [(r.i, r.j) for r in results] == pairs
+    scan_bytes = min(len(pickle.dumps(p)) for p in pre)
+    assert scan_bytes > 100_000
+    assert 0 < ex.task_bytes < 1_000  # fn by reference, a label, the data's key, (i, j)
+    assert ex.task_bytes * 100 < scan_bytes
+    assert ex.shared_bytes > sum(len(pickle.dumps(p)) for p in pre)  # all scans, once
+    holders = ex.client.who_has()
+    shared = [k for k in holders if str(k).startswith("mvreg-data")]
+    assert shared and max(len(holders[k]) for k in shared) == 2  # broadcast to both workers
+
+
+def test_a_pair_task_error_names_the_pair(preprocessed, ex):
+    pre, scales = preprocessed
+    broken = AlignConfig().model_copy(update={"ransac_backend": "no-such-backend"})
+    with pytest.raises(TaskError) as info:
+        align_pairs(pre, [(0, 1), (1, 2)], broken, 0, executor=ex, scales=scales)
+    assert info.value.task == f"pair {pre[0].name}, {pre[1].name}"
+    assert "KeyError" in str(info.value) and info.value.exit_code == 4
+
+
+def test_a_scan_task_error_names_the_scan(scans_dir, ex):
+    scans = load_source(scans_dir, None, 100, 10**7, None, NoProgress(), "registration").scans
+    scans[3].points = scans[3].points[:, :2]  # not 3-D: fails inside preprocessing
+    with pytest.raises(TaskError) as info:
+        preprocess_all(scans, 0.05, None, ex)
+    assert info.value.task == f"preprocessing scan {scans[3].name}"
+
+
+def test_workers_and_scheduler_are_exclusive():
+    with pytest.raises(ConfigError, match="workers"):
+        load_config(workers=2, scheduler="tcp://127.0.0.1:8786")
+
+
+def test_ctrl_c_exits_130_with_no_output_and_no_process_left(scans_dir, tmp_path):
+    import psutil
+
+    out = tmp_path / "out"
+    cmd = [sys.executable, "-m", "mvreg.cli", "register", str(scans_dir), "--out", str(out)]
+    root = str(Path(__file__).resolve().parents[1])
+    proc = subprocess.Popen(
+        [*cmd, "--workers", "2", "--no-rrd"],
+        env=dict(os.environ, PYTHONPATH=root, OPENBLAS_NUM_THREADS="1"),
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        text=True,
+        start_new_session=True,  # its own process group, as a terminal's foreground job
+    )
+    deadline = time.monotonic() + 60
+    while time.monotonic() < deadline and len(_ignoring_sigint(proc.pid)) < 2:
+        time.sleep(0.2)  # until the cluster's two worker processes have started
+    time.sleep(0.5)
+    os.killpg(proc.pid, signal.SIGINT)  # Ctrl-C reaches the whole group
+    _, err = proc.communicate(timeout=60)
+    assert proc.returncode == 130, err
+    assert "mvreg: interrupted" in err and "Traceback" not in err
+    assert not out.exists() and list(tmp_path.iterdir()) == []
+    time.sleep(0.5)
+    group = [p for p in psutil.process_iter(["status"]) if _pgid(p.pid) == proc.pid]
+    assert [p for p in group if p.info["status"] != psutil.STATUS_ZOMBIE] == []  # all exited
+
+
+def _ignoring_sigint(pid):
+    """The worker processes of ``pid`` that ignore SIGINT (its plugin has run)."""
+    import psutil
+
+    out = []
+    for child in psutil.Process(pid).children():
+        try:
+            status = open(f"/proc/{child.pid}/status").read()
+            ignored = int(status.split("SigIgn:")[1].split()[0], 16)
+            if "spawn_main" in " ".join(child.cmdline()) and ignored & (1 << (signal.SIGINT - 1)):
+                out.append(child)
+        except (psutil.Error, OSError, IndexError):
+            pass
+    return out
+
+
+def _pgid(pid):
+    try:
+        return os.getpgid(pid)
+    except OSError:
+        return None
+
+
+def _sleep(seconds, item):
+    time.sleep(seconds)
+    return item
+
+
+def test_an_interrupt_cancels_the_tasks(ex):
+    def interrupt(_result):
+        raise KeyboardInterrupt
+
+    with pytest.raises(KeyboardInterrupt):
+        map_shared(ex, _sleep, 0.5, list(range(12)), progress=interrupt)
+    deadline = time.monotonic() + 10
+    while any(ex.client.processing().values()) and time.monotonic() < deadline:
+        time.sleep(0.1)
+    assert not any(ex.client.processing().values())
+    assert map_shared(ex, operator.add, 1, [1, 2]) == [2, 3]  # the cluster still works
+
+
+def _die_once(marker, item):
+    if not os.path.exists(marker):
+        open(marker, "w").close()
+        os._exit(1)  # the worker process dies mid-task
+    return item * 2
+
+
+def test_a_lost_workers_task_is_retried(ex, tmp_path):
+    marker = str(tmp_path / "died")
+    assert map_shared(ex, _die_once, marker, [1, 2, 3, 4]) == [2, 4, 6, 8]
+    assert os.path.exists(marker)

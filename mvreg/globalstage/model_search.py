@@ -219,20 +219,23 @@ def distant_alternative(
     max_refined: int = 4,
     rounds: int = 2,
     results=(),
+    turns=(),
 ) -> Alternative | None:
     """A world motion of the scans ``group`` (moved as one), far from the identity, under
     which they fit ``model`` (the fine level of ``others``) as well or better and that no
     view of ``others`` contradicts more; or None (module docstring). Besides RANSAC on the
     model, the pose hypotheses of the group's pairs with ``others`` (``results``,
     :func:`pair_poses`) are tried: a pair sees the place the model barely covers, which
-    RANSAC on the whole model ranks below the well-covered symmetric copies."""
+    RANSAC on the whole model ranks below the well-covered symmetric copies. ``turns``:
+    world motions to try as well (the turns about the axis of the registered scans, when
+    they are close to a body of revolution: :func:`axis_turns`)."""
     with single_threaded_blas():  # small SVDs and solves: threads only busy-wait
         return _search(group, pre, T_world_scan, others, model, voxel, acfg, far_voxels,
-                       max_source, max_refined, rounds, results)  # fmt: skip
+                       max_source, max_refined, rounds, results, turns)  # fmt: skip
 
 
 def _search(group, pre, T_world_scan, others, model, voxel, acfg, far_voxels, max_source,
-            max_refined, rounds, results) -> Alternative | None:  # fmt: skip
+            max_refined, rounds, results, turns) -> Alternative | None:  # fmt: skip
     group = list(group)
     target = feature_model(pre, T_world_scan, others)
     source = feature_model(pre, T_world_scan, group)
@@ -246,7 +249,7 @@ def _search(group, pre, T_world_scan, others, model, voxel, acfg, far_voxels, ma
     from_pairs = [
         P @ invert_transform(T_world_scan[s]) for s in group for P in pair_poses(s, results, placed)
     ]
-    if not candidates and not from_pairs:
+    if not candidates and not from_pairs and not turns:
         return None
     src = np.concatenate([transform_points(T_world_scan[s], pre[s].fine_points) for s in group])
     src_n = np.concatenate([pre[s].fine_normals @ T_world_scan[s][:3, :3].T for s in group])
@@ -271,7 +274,8 @@ def _search(group, pre, T_world_scan, others, model, voxel, acfg, far_voxels, ma
         ][:limit]
 
     from_pairs = distinct_poses(from_pairs, far, *scan_extent(source.points))
-    for M in best_far(candidates) + best_far(from_pairs, 6 * max_refined, acfg.min_overlap_ratio):
+    tried = best_far(candidates) + best_far(from_pairs, 6 * max_refined, acfg.min_overlap_ratio)
+    for M in tried + best_far(list(turns), len(turns), acfg.min_overlap_ratio):
         M = refine_on_model(M, src, src_n, model, voxel, acfg)
         if _moved(M, src) <= far:
             continue  # came back to the current placement

@@ -82,7 +82,7 @@ import numpy as np
 from mvreg.config.align import AlignConfig
 from mvreg.geometry import invert_transform, rotation_from_vector, transform_points
 from mvreg.globalstage.graph import bridge_groups, main_block, on_cycle, one_side
-from mvreg.globalstage.model_search import distant_alternative, self_symmetry
+from mvreg.globalstage.model_search import axis_turns, distant_alternative, self_symmetry
 from mvreg.globalstage.robust import pair_disagreements
 from mvreg.globalstage.scan_model import (
     ScanModel,
@@ -304,19 +304,21 @@ def search_alternatives(out, graph, pre, T_world_scan, voxel, acfg, results=()) 
     names = [p.name for p in pre]
     scans = sorted(T_world_scan)
     verified = {s: T_world_scan[s] for s in scans if out[s].status == "verified"}
+    turns = []
     if len(verified) >= 3:
         whole = scan_model(pre, verified, sorted(verified))
         sym = self_symmetry(pre, verified, whole, voxel, acfg)
         if sym is not None:
             _mark_symmetric(out, verified, sym)
             return
+        turns = axis_turns(whole.points, whole.normals)  # a near axis of revolution
     for s in scans:
         others = [k for k in scans if k != s]
         if out[s].status != "verified" or len(others) < 2:
             continue
         model = scan_model(pre, T_world_scan, others)
         alt = distant_alternative(
-            [s], pre, T_world_scan, others, model, voxel, acfg, results=results
+            [s], pre, T_world_scan, others, model, voxel, acfg, results=results, turns=turns
         )
         if alt is not None:
             _mark(out[s], alt, "")
@@ -326,7 +328,7 @@ def search_alternatives(out, graph, pre, T_world_scan, voxel, acfg, results=()) 
             continue
         model = scan_model(pre, T_world_scan, others)
         alt = distant_alternative(
-            group, pre, T_world_scan, others, model, voxel, acfg, results=results
+            group, pre, T_world_scan, others, model, voxel, acfg, results=results, turns=turns
         )
         if alt is not None:
             for s in group:
@@ -463,18 +465,23 @@ def verify_and_resolve(
     """Verify, drop the scans that are not verified, re-solve the rest without the pairs
     touching them, and verify again (at most ``max_rounds`` re-solves). With ``discrete``,
     the search against the model of the others (:mod:`mvreg.globalstage.model_search`)
-    runs once, when a round finds nothing else to drop (it is the costly part).
+    runs when a round finds nothing else to drop (it is the costly part), once per set.
 
     ``solved``: the pipeline's state after its global stage, with attributes
     ``T_world_scan`` ({scan index: (4, 4)}) and ``pair_weight`` ({(i, j): weight}).
     ``resolve(results)``: runs the global stage again on ``results`` and returns a new
     state of the same kind. Returns (state, {scan index: ScanVerification} for every scan
-    that had a pose at some point, the dropped scan indices). The caller reports no pose
+    that had a pose at some point, the dropped scan indices). The search runs again on a
+    set that settles after a search dropped scans (their pairs no longer hold the others in
+    place, so a group may now show its better pose). The caller reports no pose
     for a dropped scan (after the last allowed round the state may still hold one).
     """
     dropped: dict[int, ScanVerification] = {}
     rounds = 0
-    searched = not discrete  # the search against the model runs once, on a settled set
+    searched: set | None = None  # the set the search against the model last ran on
+
+    def remaining() -> frozenset:
+        return frozenset(s for s in solved.T_world_scan if s not in dropped)
 
     acfg = align_cfg or AlignConfig()
 
@@ -491,19 +498,18 @@ def verify_and_resolve(
 
     while True:
         ver, bad = check(False)
-        if not bad and not searched:
-            searched = True
+        if not bad and discrete and remaining() != searched:
+            searched = remaining()  # a settled set not searched yet (a drop changes it)
             ver, bad = check(True, ver)
         if not bad:
             break
         dropped.update(bad)
-        remaining = [s for s in solved.T_world_scan if s not in dropped]
-        if len(remaining) < 2 or rounds == max_rounds:
+        if len(remaining()) < 2 or rounds == max_rounds:
             break
         rounds += 1
         kept = [r for r in results if r.i not in dropped and r.j not in dropped]
         solved = resolve(kept)
-    if not searched and len([s for s in solved.T_world_scan if s not in dropped]) >= 2:
+    if discrete and remaining() != searched and len(remaining()) >= 2:
         # Rounds ran out before the set settled: search the survivors all the same.
         ver, bad = check(True)
         dropped.update(bad)

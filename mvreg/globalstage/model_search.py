@@ -143,7 +143,7 @@ def refine_on_model(M, src, src_n, model: ScanModel, voxel: float, acfg: AlignCo
     """Point-to-plane ICP of the world points ``src`` moved by ``M`` on ``model``: from the
     RANSAC inlier distance plus a voxel, then within one voxel. Returns the refined M."""
     reach = (acfg.ransac_distance_voxels + 1.0) * voxel
-    for dist, iters in ((reach, 30), (voxel, 20)):
+    for dist, iters in ((reach, 20), (voxel, 10)):
         M = icp_point_to_plane(
             src, src_n, model.points, model.normals, model.tree, M, dist, iters,
             acfg.icp_min_normal_cos,
@@ -215,7 +215,7 @@ def distant_alternative(
     voxel: float,
     acfg: AlignConfig,
     far_voxels: float = 3.0,
-    max_source: int = 1000,
+    max_source: int = 500,
     max_refined: int = 4,
     rounds: int = 2,
     results=(),
@@ -305,28 +305,30 @@ def _self_matches(union: FeatureModel, acfg: AlignConfig, far: float, max_points
     return nn[has, first[has]].astype(np.int64), src[has]
 
 
-def axis_turns(points, normals, angles_deg=(60.0, 90.0, 120.0, 180.0)) -> list[np.ndarray]:
-    """World motions turning the surface (``points``, ``normals``) about the axes it is
-    closest to being a body of revolution about, by ``angles_deg`` both ways (180 once).
-    The axes: the rotation-like directions among the two weakest of its point-to-plane
-    normal matrix (a turn about the axis of a body of revolution slides it along itself;
-    located by where that motion is along the axis, not at the centroid, which a partial
-    view moves off the axis)."""
+def axis_turns(
+    points, normals, angles_deg=(60.0, 90.0, 120.0, 180.0), max_ratio: float = 0.1
+) -> list[np.ndarray]:
+    """World motions turning the surface (``points``, ``normals``) about its axis by
+    ``angles_deg`` both ways (180 once), when it is close to a body of revolution: the
+    weakest direction of its point-to-plane normal matrix is a turn, at most ``max_ratio``
+    as constrained as the next one (a turn about the axis slides the surface along
+    itself); else none. The axis passes where that motion is along it, not through the
+    centroid, which a partial view moves off the axis."""
     H, c, L = normal_matrix(points, normals)
-    _, vecs = np.linalg.eigh(H)
+    lam, vecs = np.linalg.eigh(H)
+    e = vecs[:, 0]
+    w, t = e[:3], e[3:]
+    if not lam[0] <= max_ratio * lam[1] or np.linalg.norm(w) < 0.2 * np.linalg.norm(e):
+        return []
+    axis = w / np.linalg.norm(w)
+    through = c + np.cross(w, t) * L / float(np.dot(w, w))
     out = []
-    for e in vecs.T[:2]:
-        w, t = e[:3], e[3:]
-        if np.linalg.norm(w) < 0.2 * np.linalg.norm(e):
-            continue  # a slide, not a turn
-        axis = w / np.linalg.norm(w)
-        through = c + np.cross(w, t) * L / float(np.dot(w, w))
-        for a in angles_deg:
-            for sign in (1.0,) if a == 180.0 else (1.0, -1.0):
-                M = np.eye(4)
-                M[:3, :3] = Rotation.from_rotvec(sign * np.radians(a) * axis).as_matrix()
-                M[:3, 3] = through - M[:3, :3] @ through
-                out.append(M)
+    for a in angles_deg:
+        for sign in (1.0,) if a == 180.0 else (1.0, -1.0):
+            M = np.eye(4)
+            M[:3, :3] = Rotation.from_rotvec(sign * np.radians(a) * axis).as_matrix()
+            M[:3, 3] = through - M[:3, :3] @ through
+            out.append(M)
     return out
 
 

@@ -317,8 +317,11 @@ def search_alternatives(out, graph, pre, T_world_scan, voxel, acfg, results=()) 
         if out[s].status != "verified" or len(others) < 2:
             continue
         model = scan_model(pre, T_world_scan, others)
+        # The pose hypotheses of its own pairs for a scan that no cycle confirms (a cycle
+        # already ties it to the others by two independent pairs; they cost time).
+        mine = results if out[s].evidence != "cycle" else ()
         alt = distant_alternative(
-            [s], pre, T_world_scan, others, model, voxel, acfg, results=results, turns=turns
+            [s], pre, T_world_scan, others, model, voxel, acfg, results=mine, turns=turns
         )
         if alt is not None:
             _mark(out[s], alt, "")

@@ -1,0 +1,66 @@
+"""Issue 14: the refinement's pairs grow with the scans, not with their square."""
+
+from collections import Counter
+from types import SimpleNamespace
+
+import numpy as np
+
+from bench.scale import fit_exponent
+from mvreg.geometry import transform_points
+from mvreg.globalstage.refine import overlapping_pairs
+
+
+def _boxes_overlap(pre, T, margin):
+    """Every pair whose grown world bounding boxes overlap, pair by pair."""
+    boxes = {}
+    for s, M in T.items():
+        w = transform_points(M, pre[s].points)
+        boxes[s] = (w.min(0) - margin, w.max(0) + margin)
+    keys = sorted(boxes)
+    return [
+        (i, j)
+        for a, i in enumerate(keys)
+        for j in keys[a + 1 :]
+        if np.all(np.maximum(boxes[i][0], boxes[j][0]) < np.minimum(boxes[i][1], boxes[j][1]))
+    ]
+
+
+def _ring(n, seed=0):
+    """n patches of a circle's surface, each overlapping its neighbours along it."""
+    rng = np.random.default_rng(seed)
+    pre = []
+    for k in range(n):
+        a = rng.uniform(0, 0.6, 400) + 2 * np.pi * k / n
+        pts = np.c_[np.cos(a), np.sin(a), rng.uniform(0, 0.1, 400)] * 10
+        pre.append(SimpleNamespace(points=pts))
+    return pre, {k: np.eye(4) for k in range(n)}
+
+
+def test_uncapped_is_every_overlapping_box():
+    pre, T = _ring(30)
+    del T[4]  # an unregistered scan takes part in no pair
+    for margin in (0.0, 0.1, 1.0, 5.0):
+        assert overlapping_pairs(pre, T, margin, None) == _boxes_overlap(pre, T, margin)
+
+
+def test_capped_pairs_are_bounded_and_keep_neighbours():
+    pre, T = _ring(60)
+    full = overlapping_pairs(pre, T, 0.2, None)
+    capped = overlapping_pairs(pre, T, 0.2, 4)
+    assert set(capped) <= set(full) and capped == sorted(capped)
+    assert len(capped) <= 4 * 60 < len(full)
+    degree = Counter(s for p in capped for s in p)
+    assert min(degree[s] for s in range(60)) >= 4
+    # neighbours along the ring share the most surface: each keeps both of them
+    assert all((k, k + 1) in capped for k in range(59))
+
+
+def test_few_partners_change_nothing():
+    pre, T = _ring(10)
+    assert overlapping_pairs(pre, T, 1.0, 12) == overlapping_pairs(pre, T, 1.0, None)
+
+
+def test_fit_exponent():
+    n = np.array([20, 40, 80, 160])
+    assert abs(fit_exponent(n, 3.0 * n**1.5) - 1.5) < 1e-9
+    assert fit_exponent([20], [1.0]) is None

@@ -64,3 +64,42 @@ def test_fit_exponent():
     n = np.array([20, 40, 80, 160])
     assert abs(fit_exponent(n, 3.0 * n**1.5) - 1.5) < 1e-9
     assert fit_exponent([20], [1.0]) is None
+
+
+def _pair_residuals_reference(tracks, T):
+    """pair_residuals as it was: a mask per scan and per pair."""
+    out = np.full(len(tracks.pairs), np.nan)
+    a, b = tracks.link_obs[:, 0], tracks.link_obs[:, 1]
+    sa, sb = tracks.obs_scan[a], tracks.obs_scan[b]
+    ok = np.array([int(x) in T and int(y) in T for x, y in zip(sa, sb, strict=True)])
+    pa, pb = np.empty((len(a), 3)), np.empty((len(a), 3))
+    for s in np.unique(np.r_[sa[ok], sb[ok]]):
+        ma, mb = ok & (sa == s), ok & (sb == s)
+        pa[ma] = transform_points(T[int(s)], tracks.coords[a[ma]])
+        pb[mb] = transform_points(T[int(s)], tracks.coords[b[mb]])
+    dist = np.linalg.norm(pa - pb, axis=1)
+    for p in np.unique(tracks.link_pair[ok]):
+        out[p] = float(np.median(dist[ok & (tracks.link_pair == p)]))
+    return out
+
+
+def test_pair_residuals_same_as_per_pair_masks():
+    from mvreg.geometry import random_rotations
+    from mvreg.globalstage.robust import pair_residuals
+
+    rng = np.random.default_rng(1)
+    n, k, links = 12, 3000, 5000
+    obs_scan = rng.integers(0, n, k)
+    link_obs = rng.integers(0, k, (links, 2))
+    tracks = SimpleNamespace(
+        pairs=np.zeros((40, 2)),
+        link_obs=link_obs,
+        obs_scan=obs_scan,
+        coords=rng.normal(size=(k, 3)),
+        link_pair=rng.integers(0, 37, links),
+    )
+    R = random_rotations(rng, n)
+    T = {s: np.r_[np.c_[R[s], rng.normal(size=3)], [[0, 0, 0, 1]]] for s in range(n) if s != 3}
+    assert np.array_equal(
+        pair_residuals(tracks, T), _pair_residuals_reference(tracks, T), equal_nan=True
+    )

@@ -33,22 +33,32 @@ def pair_residuals(tracks: Tracks, T_world_scan: dict[int, np.ndarray]) -> np.nd
         return out
     a, b = tracks.link_obs[:, 0], tracks.link_obs[:, 1]
     sa, sb = tracks.obs_scan[a], tracks.obs_scan[b]
-    ok = np.array(
-        [int(x) in T_world_scan and int(y) in T_world_scan for x, y in zip(sa, sb, strict=True)]
-    )
+    posed = np.array(sorted(int(s) for s in T_world_scan), dtype=np.int64)
+    ok = np.isin(sa, posed) & np.isin(sb, posed)
     if not np.any(ok):
         return out
-    pa = np.empty((len(a), 3))
-    pb = np.empty((len(a), 3))
-    for s in np.unique(np.r_[sa[ok], sb[ok]]):
-        T = T_world_scan[int(s)]
-        ma, mb = ok & (sa == s), ok & (sb == s)
-        pa[ma] = transform_points(T, tracks.coords[a[ma]])
-        pb[mb] = transform_points(T, tracks.coords[b[mb]])
+    pa = _world(tracks.coords, a[ok], sa[ok], T_world_scan)
+    pb = _world(tracks.coords, b[ok], sb[ok], T_world_scan)
     dist = np.linalg.norm(pa - pb, axis=1)
-    for p in np.unique(tracks.link_pair[ok]):
-        sel = ok & (tracks.link_pair == p)
-        out[p] = float(np.median(dist[sel]))
+    pair = tracks.link_pair[ok]
+    for p, idx in _groups(pair):  # one pass over the links, not one per pair
+        out[p] = float(np.median(dist[idx]))
+    return out
+
+
+def _groups(keys: np.ndarray):
+    """(key, indices of that key in their order) for each distinct key, ascending."""
+    order = np.argsort(keys, kind="stable")
+    k = keys[order]
+    starts = np.flatnonzero(np.r_[True, k[1:] != k[:-1]]) if len(k) else np.zeros(0, np.int64)
+    return zip(k[starts].tolist(), np.split(order, starts[1:]), strict=True)
+
+
+def _world(coords, obs, scan, T_world_scan) -> np.ndarray:
+    """World points of observations ``obs`` of scans ``scan`` (each under its pose)."""
+    out = np.empty((len(obs), 3))
+    for s, idx in _groups(scan):
+        out[idx] = transform_points(T_world_scan[int(s)], coords[obs[idx]])
     return out
 
 

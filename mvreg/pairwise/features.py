@@ -54,6 +54,9 @@ def feature_matches(
     fi, tree_i = reduced_tree(pre_i, basis)
     fj, tree_j = reduced_tree(pre_j, basis)
     _, nn_ji = tree_i.query(fj, eps=eps)
-    _, nn_ij = tree_j.query(fi, eps=eps)
-    idx_j = np.flatnonzero(nn_ij[nn_ji] == np.arange(len(fj)))
+    # Only the descriptors of i that some j hit can be mutual: query those alone (the
+    # same answers; the model of many scans against one scan no longer costs its size).
+    hit, where = np.unique(nn_ji, return_inverse=True)
+    _, back = tree_j.query(fi[hit], eps=eps)
+    idx_j = np.flatnonzero(back[where] == np.arange(len(fj)))
     return nn_ji[idx_j].astype(np.int64), idx_j.astype(np.int64)

@@ -52,3 +52,15 @@ class PreprocessConfig(BaseModel):
         description="a scan is a single view when at most this share of its points lies "
         "behind another along its view axis",
     )
+    estimate_viewpoint: bool = Field(
+        True,
+        description="single views: estimate the sensor position from the raw points' "
+        "direction grid (mvreg.pairwise.viewpoint) for perspective view tests",
+    )
+    max_viewpoint_spread_ratio: float = Field(
+        0.3,
+        gt=0,
+        le=1,
+        description="keep the estimated sensor position only when the directions to the "
+        "points from it are at least this much more regular than seen along its axis",
+    )

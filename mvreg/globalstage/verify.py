@@ -228,6 +228,45 @@ def degenerate_direction(
     return None
 
 
+def unsettled(
+    model: ScanModel,
+    pts: np.ndarray,
+    nrm: np.ndarray,
+    noise: float,
+    voxel: float,
+    acfg: AlignConfig,
+    agree_voxels: float = 1.0,
+    max_source: int = 3000,
+) -> str:
+    """Why the scan (world ``pts``, ``nrm``) is not at rest against ``model``, or "": a
+    right pose is a fixed point of point-to-plane ICP against the other scans. When ICP
+    from it moves the scan's points by more than ``agree_voxels`` feature voxels (median)
+    to a clearly better fit (overlap share higher by more than three binomial standard
+    errors, residual no higher), the pose is not the one the data hold (a scan placed by
+    a single weak pair and not refined to the rest)."""
+    stride = max(1, int(np.ceil(len(pts) / max_source)))
+    src, src_n = pts[::stride], nrm[::stride]
+    overlap0, ratio0, tight0, _, _ = model_fit(model, src, src_n, noise, voxel, acfg)
+    T = icp_point_to_plane(
+        src, src_n, model.points, model.normals, model.tree, np.eye(4),
+        2.0 * voxel, 50, acfg.icp_min_normal_cos,
+    )  # fmt: skip
+    moved = float(np.median(np.linalg.norm(transform_points(T, src) - src, axis=1)))
+    if moved <= agree_voxels * voxel:
+        return ""
+    q, qn = transform_points(T, src), src_n @ T[:3, :3].T
+    overlap, ratio, _, _, _ = model_fit(model, q, qn, noise, voxel, acfg)
+    spread = 3.0 * np.sqrt(max(overlap0 * (1 - overlap0), 1e-12) / max(len(src), 1))
+    if overlap > overlap0 + spread and ratio <= ratio0:
+        angle = np.degrees(np.arccos(np.clip((np.trace(T[:3, :3]) - 1) / 2, -1, 1)))
+        return (
+            f"not at rest against the other scans: ICP moves it {moved / voxel:.1f} voxels "
+            f"({angle:.1f} deg) to a better fit (overlap {overlap:.2f} vs {overlap0:.2f}, "
+            f"residual {ratio:.1f}x vs {ratio0:.1f}x the noise)"
+        )
+    return ""
+
+
 # ---------------------------------------------------------------------------- verify
 
 
@@ -317,11 +356,11 @@ def search_alternatives(out, graph, pre, T_world_scan, voxel, acfg, results=()) 
         if out[s].status != "verified" or len(others) < 2:
             continue
         model = scan_model(pre, T_world_scan, others)
-        # The pose hypotheses of its own pairs for a scan that no cycle confirms (a cycle
-        # already ties it to the others by two independent pairs; they cost time).
-        mine = results if out[s].evidence != "cycle" else ()
+        # The pose hypotheses of its own pairs too, for cycle-confirmed scans as well: on a
+        # near-symmetric shape wrong pairs close cycles (fuze sparse seed 0: a triangle
+        # of two wrong pairs put one view 133 deg off, "cycle"-verified).
         alt = distant_alternative(
-            [s], pre, T_world_scan, others, model, voxel, acfg, results=mine, turns=turns
+            [s], pre, T_world_scan, others, model, voxel, acfg, results=results, turns=turns
         )
         if alt is not None:
             _mark(out[s], alt, "")
@@ -370,6 +409,10 @@ def _check_scan(s, pre, T_world_scan, graph, cycle, main, voxel, acfg, agree_vox
         return v, conflicts
     if s in cycle:
         v.evidence = "cycle"
+        return v, conflicts
+    drift = unsettled(model, pts, nrm, noise, voxel, acfg, agree_voxels)
+    if drift:
+        v.status, v.reason = "unverified", drift
         return v, conflicts
     if main and s not in main:
         support = [k for k in support if k in main]
@@ -432,16 +475,21 @@ def _model_problems(overlap, ratio, support, agreeing, v, names, acfg) -> list[s
 
 def _settle_conflicts(out, conflicts, scans) -> None:
     """A free-space conflict between s and k counts against s when k's own evidence is
-    stronger (cycle > passing the model check > neither); two scans that each pass the
-    model check do not overrule each other, and cycle evidence stands (why:
+    stronger: cycle > passing the model check > neither, and between two scans that pass
+    the model check, the one whose pose more accepted pairs agree with (a pose resting on
+    one pairwise estimate loses against one that two or more estimates agree on; equal
+    counts do not overrule each other); cycle evidence stands (why:
     docs/design/verification.md)."""
     strength = {
-        k: 2 if out[k].evidence == "cycle" else 1 if out[k].status == "verified" else 0
+        k: (
+            2 if out[k].evidence == "cycle" else 1 if out[k].status == "verified" else 0,
+            len(out[k].agreeing_pairs),
+        )
         for k in scans
     }
     for s in scans:
         v = out[s]
-        if v.status == "undetermined" or strength[s] == 2:
+        if v.status == "undetermined" or strength[s][0] == 2:
             continue
         against = [why for k, why in conflicts.get(s, []) if strength[k] > strength[s]]
         if against:

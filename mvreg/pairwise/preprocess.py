@@ -29,9 +29,11 @@ Guarantees:
   sensor origin stored in the file, else "outward" (sum of n . (p - centroid) > 0). No
   cue assumes the sensor at the origin;
 * view direction: when at least ``min_view_facing`` of the normals face one direction
-  (:func:`view_direction`) the scan is a single view seen from it (orthographic
-  approximation) and pairwise scoring checks free space
-  (:mod:`mvreg.pairwise.scoring`); otherwise ``view_direction`` is None;
+  (:func:`view_direction`) the scan is a single view seen from it and pairwise scoring
+  checks free space (:mod:`mvreg.pairwise.scoring`); otherwise ``view_direction`` is
+  None. A single view's sensor position (``viewpoint``) is the one stored in the file,
+  else estimated from the raw points (:mod:`mvreg.pairwise.viewpoint`), else None
+  (orthographic approximation along ``view_direction``);
 * the same result whatever the executor, in the order of the scans.
 
 Measurements behind these choices: ``docs/design/pairwise.md``.
@@ -76,6 +78,9 @@ class PreprocessedScan:
         view_direction: (3,) unit direction towards the sensor (orthographic
             approximation), or None when the scan does not look like a single view.
         view_facing: share of normals facing ``view_direction`` (n . d > 0.05).
+        viewpoint: (3,) sensor position in the scan's frame (stored in the file, or
+            estimated: :mod:`mvreg.pairwise.viewpoint`) for a single view; None: the view
+            tests use the orthographic approximation along ``view_direction``.
         num_outliers_removed: raw points dropped as isolated (:func:`outlier_mask`).
     """
 
@@ -92,6 +97,7 @@ class PreprocessedScan:
     num_raw_points: int
     view_direction: np.ndarray | None = None
     view_facing: float = 0.0
+    viewpoint: np.ndarray | None = None
     num_outliers_removed: int = 0
     _cache: dict = field(default_factory=dict, repr=False, compare=False)
 
@@ -353,25 +359,9 @@ def _preprocess(scan: Scan, v: float, cfg: PreprocessConfig) -> PreprocessedScan
     file_normals = np.asarray(coarse.normals).copy() if scan.normals is not None else None
     coarse.normals = o3d.utility.Vector3dVector()
     _estimate_normals(coarse, cfg.normal_radius_voxels * v, cfg.normal_max_neighbours)
-    axis = single_view_axis(pts, np.asarray(coarse.normals), v, cfg.max_view_occlusion)
-    if axis is None:  # not one view: signs from a spanning tree over the neighbourhoods
-        k = min(cfg.orient_neighbours, len(pts) - 1)
-        try:
-            coarse.orient_normals_consistent_tangent_plane(k)
-        except RuntimeError:
-            pass  # degenerate neighbourhood graph: keep PCA signs, the global sign applies
-    normals = np.asarray(coarse.normals).copy()
-    if axis is not None:  # one sign per normal from the view axis (needs no spanning tree)
-        normals *= np.where(normals @ axis < 0, -1.0, 1.0)[:, None]
-    if file_normals is not None:
-        vote, orientation = np.sum(np.einsum("ij,ij->i", normals, file_normals)), "file normals"
-    elif scan.sensor_origin is not None:
-        vote = np.sum(np.sign(np.einsum("ij,ij->i", normals, scan.sensor_origin - pts)))
-        orientation = "sensor origin"
-    else:
-        vote, orientation = np.sum(np.einsum("ij,ij->i", normals, pts - pts.mean(0))), "outward"
-    if vote < 0:
-        normals = -normals
+    normals, orientation, seen_from = _oriented_normals(
+        coarse, pts, file_normals, scan, keep, v, cfg
+    )
     coarse.normals = o3d.utility.Vector3dVector(normals)
     fpfh = o3d.pipelines.registration.compute_fpfh_feature(
         coarse,
@@ -381,6 +371,10 @@ def _preprocess(scan: Scan, v: float, cfg: PreprocessConfig) -> PreprocessedScan
     )
     fine_v = cfg.fine_voxel_ratio * v
     fine_pts, fine_nrm = _resample(raw, fine_v, cfg, pts, normals)
+    if seen_from is not None:
+        fine_nrm *= np.where(np.einsum("ij,ij->i", fine_nrm, seen_from - fine_pts) < 0, -1.0, 1.0)[
+            :, None
+        ]
     out = PreprocessedScan(
         name=scan.name,
         voxel_size=v,
@@ -395,12 +389,64 @@ def _preprocess(scan: Scan, v: float, cfg: PreprocessConfig) -> PreprocessedScan
         num_raw_points=scan.num_points,
         num_outliers_removed=int(np.count_nonzero(~keep)) if cfg.outlier_min_cell_share else 0,
     )
-    direction, facing = view_direction(normals)
-    out.view_facing = facing
-    out.view_direction = direction if facing >= cfg.min_view_facing else None
+    if seen_from is not None:  # a single view seen from there
+        direction = seen_from - fine_pts.mean(0)
+        direction /= np.linalg.norm(direction)
+        out.view_facing = float(np.mean(normals @ direction > 0.05))
+        out.view_direction, out.viewpoint = direction, seen_from
+    else:
+        direction, facing = view_direction(normals)
+        out.view_facing = facing
+        out.view_direction = direction if facing >= cfg.min_view_facing else None
+        if out.view_direction is not None and scan.sensor_origin is not None:
+            out.viewpoint = np.asarray(scan.sensor_origin, dtype=np.float64).copy()
     out._cache["o3d_feature"] = coarse
     out._cache["o3d_fpfh"] = fpfh
     return out
+
+
+def _oriented_normals(coarse, pts, file_normals, scan: Scan, keep, v: float, cfg):
+    """(normals, orientation cue, estimated sensor position or None) of the feature level:
+    signs towards the sensor when its position is estimated, else by the view axis of a
+    single view, else by a spanning tree; then one sign per scan from the first cue the
+    data give (module docstring)."""
+    axis = single_view_axis(pts, np.asarray(coarse.normals), v, cfg.max_view_occlusion)
+    seen_from = _estimated_viewpoint(scan, keep, cfg, axis)
+    if axis is None and seen_from is None:  # not one view: signs from a spanning tree
+        k = min(cfg.orient_neighbours, len(pts) - 1)
+        try:
+            coarse.orient_normals_consistent_tangent_plane(k)
+        except RuntimeError:
+            pass  # degenerate neighbourhood graph: keep PCA signs, the global sign applies
+    normals = np.asarray(coarse.normals).copy()
+    if seen_from is not None:  # one sign per normal: towards the sensor
+        normals *= np.where(np.einsum("ij,ij->i", normals, seen_from - pts) < 0, -1.0, 1.0)[:, None]
+    elif axis is not None:  # one sign per normal from the view axis (needs no spanning tree)
+        normals *= np.where(normals @ axis < 0, -1.0, 1.0)[:, None]
+    if file_normals is not None:
+        vote, orientation = np.sum(np.einsum("ij,ij->i", normals, file_normals)), "file normals"
+    elif seen_from is not None:
+        vote, orientation = 1.0, "estimated sensor position"
+    elif scan.sensor_origin is not None:
+        vote = np.sum(np.sign(np.einsum("ij,ij->i", normals, scan.sensor_origin - pts)))
+        orientation = "sensor origin"
+    else:
+        vote, orientation = np.sum(np.einsum("ij,ij->i", normals, pts - pts.mean(0))), "outward"
+    if vote < 0:
+        normals = -normals
+    return normals, orientation, seen_from
+
+
+def _estimated_viewpoint(scan: Scan, keep, cfg: PreprocessConfig, axis=None) -> np.ndarray | None:
+    """The sensor position estimated from the raw points
+    (:func:`~mvreg.pairwise.viewpoint.estimate_viewpoint`), when enabled and the file
+    stores none; None when the points show no sensor's direction grid."""
+    if scan.sensor_origin is not None or not cfg.estimate_viewpoint:
+        return None
+    from mvreg.pairwise.viewpoint import estimate_viewpoint
+
+    c, _ = estimate_viewpoint(scan.points[keep], cfg.max_viewpoint_spread_ratio, axis)
+    return c
 
 
 def _resample(raw, voxel: float, cfg: PreprocessConfig, ref_pts, ref_nrm, strays=True):

@@ -94,70 +94,95 @@ def score_alignment(
 # ---------------------------------------------------------------------------- view tests
 
 
-def view_frame(pre: PreprocessedScan):
-    """(a, b, d): two unit vectors across the scan's view direction ``d``, and ``d``;
-    None when the scan is not a single view."""
+class ViewProjection:
+    """How a single view saw space: from its sensor position ``c`` (perspective; lateral
+    coordinates on the image plane through the scan's centroid, depth = -range) or, when
+    ``c`` is None, along its view direction ``d`` (orthographic; depth = p . d). Larger
+    depth is nearer the sensor; lateral units are lengths at the scan's depth."""
+
+    def __init__(self, d: np.ndarray, c: np.ndarray | None, centroid: np.ndarray):
+        self.d = np.asarray(d, dtype=np.float64)
+        a = np.cross(self.d, [1.0, 0.0, 0.0] if abs(self.d[0]) < 0.9 else [0.0, 1.0, 0.0])
+        a /= np.linalg.norm(a)
+        self.F = np.stack([a, np.cross(self.d, a)])
+        self.c = None if c is None else np.asarray(c, dtype=np.float64)
+        self.focal = None if c is None else float((self.c - centroid) @ self.d)
+
+    def project(self, points: np.ndarray, normals: np.ndarray):
+        """(lateral (n, 2), depth (n,), cosine of normal and sensor direction (n,), in
+        front of the sensor (n,) bool) of ``points`` in the scan's frame."""
+        if self.c is None:
+            return points @ self.F.T, points @ self.d, normals @ self.d, np.ones(len(points), bool)
+        q = self.c - points
+        z = q @ self.d
+        ahead = z > 1e-9 * max(self.focal, 1e-300)
+        r = np.linalg.norm(q, axis=1)
+        lateral = (-q @ self.F.T) * (self.focal / np.where(ahead, z, 1.0))[:, None]
+        cos = np.einsum("ij,ij->i", normals, q) / np.maximum(r, 1e-300)
+        return lateral, -r, cos, ahead
+
+
+def view_projection(pre: PreprocessedScan) -> ViewProjection | None:
+    """The scan's :class:`ViewProjection` (cached); None when it is not a single view."""
     if pre.view_direction is None:
         return None
-    if "view_frame" not in pre._cache:
-        d = np.asarray(pre.view_direction, dtype=np.float64)
-        a = np.cross(d, [1.0, 0.0, 0.0] if abs(d[0]) < 0.9 else [0.0, 1.0, 0.0])
-        a /= np.linalg.norm(a)
-        pre._cache["view_frame"] = (a, np.cross(d, a), d)
-    return pre._cache["view_frame"]
+    if "view_projection" not in pre._cache:
+        pre._cache["view_projection"] = ViewProjection(
+            pre.view_direction, pre.viewpoint, pre.fine_points.mean(0)
+        )
+    return pre._cache["view_projection"]
 
 
 def depth_grid(pre: PreprocessedScan, fine_voxel: float):
     """Front-most depth of the fine points per cell (1.5 fine voxels) of a grid across the
-    view direction: (a, b, d, cell, sorted cell keys, depths); None without a view."""
-    frame = view_frame(pre)
-    if frame is None:
+    view: (projection, cell, sorted cell keys, depths); None without a view."""
+    view = view_projection(pre)
+    if view is None:
         return None
     cell = 1.5 * fine_voxel
     cached = pre._cache.get("depth_grid")
-    if cached is None or cached[3] != cell:
-        a, b, d = frame
-        keys = cell_keys(pre.fine_points, a, b, cell)
-        depth = pre.fine_points @ d
+    if cached is None or cached[1] != cell:
+        lateral, depth, _, _ = view.project(pre.fine_points, pre.fine_normals)
+        keys = cell_keys(lateral, cell)
         order = np.lexsort((depth, keys))
         keys, depth = keys[order], depth[order]
         last = np.flatnonzero(np.r_[keys[1:] != keys[:-1], True])
-        cached = pre._cache["depth_grid"] = (a, b, d, cell, keys[last], depth[last])
+        cached = pre._cache["depth_grid"] = (view, cell, keys[last], depth[last])
     return cached
 
 
 def lateral_tree(pre: PreprocessedScan):
-    """(F (2, 3), d, KD-tree of the fine points projected by F across the view direction
-    d); None without a view."""
-    frame = view_frame(pre)
-    if frame is None:
+    """(projection, KD-tree of the fine points' lateral coordinates); None without a
+    view."""
+    view = view_projection(pre)
+    if view is None:
         return None
     if "lateral_tree" not in pre._cache:
-        a, b, d = frame
-        F = np.stack([a, b])
-        pre._cache["lateral_tree"] = (F, d, cKDTree(pre.fine_points @ F.T))
+        lateral, _, _, _ = view.project(pre.fine_points, pre.fine_normals)
+        pre._cache["lateral_tree"] = (view, cKDTree(lateral))
     return pre._cache["lateral_tree"]
 
 
-def cell_keys(points: np.ndarray, a: np.ndarray, b: np.ndarray, cell: float) -> np.ndarray:
-    """One int64 key per point: its cell of a square grid of side ``cell`` spanned by a, b."""
-    u = np.floor(points @ a / cell).astype(np.int64)
-    w = np.floor(points @ b / cell).astype(np.int64)
+def cell_keys(lateral: np.ndarray, cell: float) -> np.ndarray:
+    """One int64 key per point: its cell of a square grid of side ``cell`` over the
+    (n, 2) lateral coordinates."""
+    u = np.floor(lateral[:, 0] / cell).astype(np.int64)
+    w = np.floor(lateral[:, 1] / cell).astype(np.int64)
     return (u << 32) + w  # exact for |u|, |w| < 2**31 cells
 
 
 def _violations(grid, points, normals, tolerance, min_cos, min_count) -> float:
     """Share of ``points`` (in the grid scan's frame) in front of its measured surface."""
-    a, b, d, cell, keys, front = grid
-    cos = normals @ d
-    facing = cos >= min_cos
-    p = points[facing]
-    k = cell_keys(p, a, b, cell)
+    view, cell, keys, front = grid
+    lateral, depth, cos, ahead = view.project(points, normals)
+    facing = (cos >= min_cos) & ahead
+    k = cell_keys(lateral[facing], cell)
     pos = np.minimum(np.searchsorted(keys, k), len(keys) - 1)
     seen = keys[pos] == k
-    slope = np.sqrt(np.clip(1.0 - cos[facing] ** 2, 0.0, 1.0)) / np.maximum(cos[facing], 1e-3)
-    ahead = p @ d > front[pos] + tolerance + cell * slope
-    bad = _clustered(p[seen & ahead], cell)
+    c = cos[facing]
+    slope = np.sqrt(np.clip(1.0 - c**2, 0.0, 1.0)) / np.maximum(c, 1e-3)
+    ahead_of = depth[facing] > front[pos] + tolerance + cell * slope
+    bad = _clustered(points[facing][seen & ahead_of], cell)
     return float(bad / max(np.count_nonzero(seen), min_count))
 
 
@@ -204,9 +229,10 @@ def free_space_violation(
 
 
 def _unseen(lateral, points, normals, radius, min_cos, min_count) -> float:
-    F, d, tree = lateral
-    facing = normals @ d >= min_cos
-    dist, _ = tree.query(points[facing] @ F.T, distance_upper_bound=radius)
+    view, tree = lateral
+    lat, _, cos, ahead = view.project(points, normals)
+    facing = (cos >= min_cos) & ahead
+    dist, _ = tree.query(lat[facing], distance_upper_bound=radius)
     return float(np.count_nonzero(np.isinf(dist)) / max(np.count_nonzero(facing), min_count))
 
 

@@ -9,6 +9,7 @@ import json
 import numpy as np
 import pytest
 
+from mvreg.config.align import AlignConfig
 from mvreg.geometry import transform_points
 
 
@@ -127,3 +128,52 @@ def test_a_merged_e57_registers_again_and_its_stored_poses_are_reported(register
     assert d["rotation_deg_max"] < 0.1, d
     assert max(d["translation_at_centroid"]) < reg.scales.fine_voxel, d
     assert reg.report()["stored_pose_differences"] is None  # PLY files store no pose
+
+
+def test_stored_poses_are_a_second_chance_for_pairs_features_miss(registered):
+    """Every pair marked rejected by the features: the stored poses (here the truth, as an
+    E57 scanner pose would be) give each an ICP start, and the acceptance rule keeps those
+    that fit, near the truth; a stored pose turned 90 deg is a hint, not
+    trusted: none of that scan's pairs is accepted at the turned pose."""
+    from dataclasses import replace
+
+    from scipy.spatial.transform import Rotation
+
+    from mvreg.io.loaders import load_scan_file
+    from mvreg.pairwise import PairResult, derive_scales, preprocess_all, with_noise
+    from mvreg.pairwise.stored_poses import retry_from_stored_poses
+
+    folder, _ = registered
+    truth = json.loads((folder / "ground_truth.json").read_text())["poses"]
+    names = sorted(truth)
+    scans = [load_scan_file(folder / n)[0] for n in names]
+    scales = derive_scales(scans)
+    pre = preprocess_all(scans, scales.voxel)
+    scales = with_noise(scales, pre)
+    T = [np.asarray(truth[n]) for n in names]
+    rejected = [
+        PairResult(i=i, j=j, T_i_j=np.eye(4), overlap_ratio=0.0, inlier_rmse=np.inf,
+                   num_correspondences=0, fitness=0.0, accepted=False, reason="features")
+        for i in range(len(scans)) for j in range(i + 1, len(scans))
+    ]  # fmt: skip
+
+    def angle(A, B):
+        return np.degrees(Rotation.from_matrix(A[:3, :3].T @ B[:3, :3]).magnitude())
+
+    hinted = [replace(s, T_world_scan_hint=T[k]) for k, s in enumerate(scans)]
+    out = retry_from_stored_poses(pre, hinted, rejected, AlignConfig(), scales)
+    accepted = [r for r in out if r.accepted]
+    assert len(accepted) >= 6, [r.reason for r in out]
+    errors = [angle(r.T_i_j, np.linalg.inv(T[r.i]) @ T[r.j]) for r in accepted]
+    assert all(r.stats["init"] == "stored poses" for r in accepted)
+    # Pairwise ICP on a small overlap slides a little (0-2: overlap 0.23, 1.8 deg); the
+    # global stage reconciles. None is a wrong pose.
+    assert np.median(errors) < 0.5 and max(errors) < 3.0, np.round(errors, 2)
+    turn = np.eye(4)
+    turn[:3, :3] = Rotation.from_euler("z", 90, degrees=True).as_matrix()
+    hinted[0] = replace(hinted[0], T_world_scan_hint=T[0] @ turn)
+    out = retry_from_stored_poses(pre, hinted, rejected, AlignConfig(), scales)
+    for r in out:
+        if r.accepted and 0 in (r.i, r.j):
+            assert angle(r.T_i_j, np.linalg.inv(T[r.i]) @ T[r.j]) < 3.0  # not the turned one
+    assert sum(r.accepted for r in out) >= len(accepted) - (len(scans) - 1)

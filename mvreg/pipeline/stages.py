@@ -1,7 +1,9 @@
 """The stages of a run that every mode shares, and the contract of a mode.
 
 A *mode* says how scans become a pair graph: :class:`UnorderedMode` (candidate pairs,
-feature RANSAC alignment, rotation search for scans left unconnected; the default) or
+feature RANSAC alignment, rejected pairs retried from the poses stored in the files
+(:mod:`mvreg.pairwise.stored_poses`), rotation search for scans left unconnected; the
+default) or
 the sequence mode of :mod:`mvreg.sequence` (odometry and loop closures). Everything
 else -- loading, the global stage, evaluation, the result -- is the same pipeline
 (:func:`mvreg.pipeline.register.run_pipeline`).
@@ -24,6 +26,7 @@ from mvreg.pairwise import (
     with_noise,
 )
 from mvreg.pairwise.search import connect_unconnected
+from mvreg.pairwise.stored_poses import retry_from_stored_poses
 from mvreg.pipeline.run import Run
 from mvreg.scales import Scales
 
@@ -54,10 +57,12 @@ class Mode(Protocol):
 
 
 def free_space_columns(r: PairResult) -> dict:
+    """The view tests' scores, and ``init`` for a pose not from features ("stored poses")."""
+    extra = {"init": r.stats["init"]} if r.stats.get("init") == "stored poses" else {}
     return {
         "free_space_violation": r.free_space_violation,
         "unseen_violation": r.unseen_violation,
-    }
+    } | extra
 
 
 class UnorderedMode:
@@ -85,6 +90,7 @@ class UnorderedMode:
             pre, pairs, cfg.align, cfg.seed, progress=lambda _r: run.progress.advance(),
             executor=run.executor, scales=scales,
         )  # fmt: skip
+        results = retry_from_stored_poses(pre, scans, results, cfg.align, scales)
         results = connect_unconnected(
             pre, results, cfg.align, cfg.search, executor=run.local, scales=scales
         )  # the rotation search stays in-process (one scan at a time)

@@ -9,6 +9,7 @@ commands, so ``mvreg --help`` is instant and ``import mvreg.cli`` loads no algor
 
 from __future__ import annotations
 
+import os
 import sys
 from typing import Annotated
 
@@ -16,10 +17,10 @@ import typer
 
 from mvreg.cli import register as _register_cmds
 from mvreg.cli import solve as _solve_cmds
-from mvreg.cli.common import STATE, run_guarded
+from mvreg.cli.common import STATE, run_guarded, signal_exit_code
 from mvreg.cli.synth import synth_command
 
-__all__ = ["app", "run_guarded"]
+__all__ = ["app", "run", "run_guarded"]
 
 app = typer.Typer(
     name="mvreg",
@@ -72,3 +73,20 @@ app.command("synth", epilog="Example:  mvreg synth builtin --out scans/ --views 
 
 if __name__ == "__main__":  # pragma: no cover
     sys.exit(app())
+
+
+def run() -> None:
+    """The ``mvreg`` program (``python -m mvreg.cli`` too): :data:`app`. After a SIGINT or
+    SIGTERM the guarded call received, the run has unwound (outputs discarded) and the
+    process ends at once with 130 or 143: a signal that lands while an extension module
+    is being imported leaves it half-initialised, and tearing the interpreter down then
+    was seen to end the process with 1 instead."""
+    try:
+        app()
+    except SystemExit:
+        code = signal_exit_code()
+        if code is None:
+            raise
+        sys.stdout.flush()
+        sys.stderr.flush()
+        os._exit(code)

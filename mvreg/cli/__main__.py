@@ -1,5 +1,5 @@
 """``python -m mvreg.cli``: the mvreg command line."""
 
-from mvreg.cli import app
+from mvreg.cli import run
 
-app()
+run()

@@ -50,6 +50,16 @@ def _on_signal(signum, frame):
     raise Terminated() if signum == signal.SIGTERM else KeyboardInterrupt()
 
 
+def signal_exit_code() -> int | None:
+    """143 (SIGTERM) or 130 (SIGINT) when the last guarded call received a signal, else
+    None."""
+    import signal
+
+    if not _received:
+        return None
+    return 143 if _received[0] == signal.SIGTERM else 130
+
+
 def _signal_exit() -> typer.Exit:
     import signal
 
@@ -164,4 +174,10 @@ class RichProgress:
     def done(self) -> None:
         self.stage("done", 1)
         self._p.advance(self._task, 1)
+        self.stop()
+
+    def stop(self) -> None:
+        """Stop the display and its refresh thread (also when the run is interrupted: a
+        refresh thread still drawing while the interpreter exits was seen to turn an
+        exit code 130 into 1). Idempotent."""
         self._p.stop()

@@ -128,11 +128,13 @@ def register_folder(
         rec = make_recorder(rrd_path, spawn=spawn, recording_id=f"mvreg-{cfg.seed}")
         for w in getattr(rec, "warnings", []):
             typer.echo(f"mvreg: warning: {w}", err=True)
+        bars = RichProgress() if progress else None
         with rec:
-            reg = run_register(
-                folder, cfg, recorder=rec, progress=RichProgress() if progress else None,
-                truth=truth,
-            )  # fmt: skip
+            try:
+                reg = run_register(folder, cfg, recorder=rec, progress=bars, truth=truth)
+            finally:
+                if bars is not None:
+                    bars.stop()
             if reg.T_world_scan:
                 pts, res = residual_heatmap(reg)
                 rec.log_residual_heatmap(pts, res)

@@ -42,7 +42,7 @@ from scipy.spatial.transform import Rotation
 from mvreg.config.align import AlignConfig
 from mvreg.executor import single_threaded_blas
 from mvreg.geometry import invert_transform, transform_points
-from mvreg.globalstage.scan_model import ScanModel, model_fit, normal_matrix
+from mvreg.globalstage.scan_model import ScanModel, model_fit, normal_matrix, overlap_spread
 from mvreg.pairwise.features import FeatureBasis
 from mvreg.pairwise.hypotheses import distinct_poses, ransac_numpy, scan_extent
 from mvreg.pairwise.icp import feature_level_tree, icp_point_to_plane
@@ -284,7 +284,7 @@ def _search(group, pre, T_world_scan, others, model, voxel, acfg, far_voxels, ma
             continue
         if view_conflict(group, pre, T_world_scan, others, M, acfg) is not None:
             continue
-        spread = 3.0 * np.sqrt(max(base[0] * (1 - base[0]), 1e-12) / len(src))
+        spread = overlap_spread(base[0], len(src))
         better = overlap > base[0] + spread and ratio <= base[1]
         angle = float(np.degrees(Rotation.from_matrix(M[:3, :3]).magnitude()))
         return Alternative(M, angle, overlap, ratio, better, base)

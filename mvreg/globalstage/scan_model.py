@@ -70,6 +70,12 @@ def model_fit(model, pts, nrm, noise_s, voxel, acfg: AlignConfig):
     return overlap, ratio, tight, idx, noise
 
 
+def overlap_spread(share: float, n: int) -> float:
+    """Three binomial standard errors of an overlap ``share`` measured over ``n`` points:
+    how far two shares may differ by the sampling alone."""
+    return 3.0 * np.sqrt(max(share * (1 - share), 1e-12) / max(n, 1))
+
+
 def equally_good(overlap, ratio, base_overlap, base_ratio, n, acfg: AlignConfig) -> bool:
     """Whether a probed pose fits the model as well as the final one: residual within the
     acceptance rule and no worse than the final one's by more than its sampling spread,
@@ -78,7 +84,7 @@ def equally_good(overlap, ratio, base_overlap, base_ratio, n, acfg: AlignConfig)
     moves the border of the overlap)."""
     if not ratio <= acfg.max_residual_ratio:
         return False
-    spread = 3.0 * np.sqrt(max(base_overlap * (1 - base_overlap), 1e-12) / max(n, 1))
+    spread = overlap_spread(base_overlap, n)
     if overlap < base_overlap * 0.9 - spread:
         return False
     return ratio <= base_ratio * 1.25 + 3.0 / np.sqrt(max(n, 1))

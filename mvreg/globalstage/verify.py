@@ -89,6 +89,7 @@ from mvreg.globalstage.scan_model import (
     equally_good,
     model_fit,
     normal_matrix,
+    overlap_spread,
     scan_model,
 )
 from mvreg.pairwise.icp import icp_point_to_plane
@@ -246,7 +247,7 @@ def unsettled(
     a single weak pair and not refined to the rest)."""
     stride = max(1, int(np.ceil(len(pts) / max_source)))
     src, src_n = pts[::stride], nrm[::stride]
-    overlap0, ratio0, tight0, _, _ = model_fit(model, src, src_n, noise, voxel, acfg)
+    overlap0, ratio0, _, _, _ = model_fit(model, src, src_n, noise, voxel, acfg)
     T = icp_point_to_plane(
         src, src_n, model.points, model.normals, model.tree, np.eye(4),
         2.0 * voxel, 50, acfg.icp_min_normal_cos,
@@ -256,7 +257,7 @@ def unsettled(
         return ""
     q, qn = transform_points(T, src), src_n @ T[:3, :3].T
     overlap, ratio, _, _, _ = model_fit(model, q, qn, noise, voxel, acfg)
-    spread = 3.0 * np.sqrt(max(overlap0 * (1 - overlap0), 1e-12) / max(len(src), 1))
+    spread = overlap_spread(overlap0, len(src))
     if overlap > overlap0 + spread and ratio <= ratio0:
         angle = np.degrees(np.arccos(np.clip((np.trace(T[:3, :3]) - 1) / 2, -1, 1)))
         return (

@@ -17,16 +17,19 @@ pairs of a chair failed the orthographic tests; seen from the true sensor positi
 How: a range scanner samples a regular grid of directions from its sensor (a camera's
 pixels, a laser scanner's angular steps), and its noise is along the rays. Seen from the
 true sensor position the directions to the points are that grid: the angular distance
-from a point to its nearest neighbour is nearly the same everywhere. Seen from anywhere
-else, it varies with the depth and slope of the surface. The estimate minimises the
-spread (interquartile range of the logarithm) of those nearest-neighbour distances over
-the sensor position (Nelder-Mead from several distances along the view axis), on
-patches of neighbouring raw points (so that the grid survives the sampling). It is kept
-only when the grid it reveals is clearly more regular than the points seen along the axis
-(spread at most ``max_spread_ratio`` of the orthographic one, and at most ``MAX_SPREAD``)
-and the sensor is near enough for perspective to matter (``MAX_DISTANCE_RADII``): a scan
-that was resampled, merged, made by a sensor without a grid or from far away keeps the
-orthographic view.
+from a point to its nearest neighbour is nearly the same within a patch. Seen from
+anywhere else, it varies with the depth and slope of the surface. The estimate minimises
+the spread of those gaps (interquartile range of their logarithm, each patch's relative
+to its own median: a pinhole's pitch varies slowly across its image) over the sensor
+position: on ``PATCHES`` patches of neighbouring raw points (the grid survives only
+there), the nearest neighbour in direction taken among the ``NEIGHBOURS`` nearest in
+space; ``DIRECTIONS`` x ``DISTANCES`` positions around the centroid, then Nelder-Mead
+from the ``STARTS`` best. It is kept only when the grid it reveals is clearly more
+regular than the points seen along its direction (spread at most ``max_spread_ratio`` of
+the orthographic one, and at most ``MAX_SPREAD``) and the sensor is near enough for
+perspective to matter (``MAX_DISTANCE_RADII``): a scan that was resampled, merged, made
+by a sensor without a grid or from far away keeps the orthographic view; so does one
+already a regular grid along its view axis (not searched).
 A sensor position stored in the file is used as it is, without an estimate.
 """
 

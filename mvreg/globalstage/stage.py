@@ -151,6 +151,7 @@ class GlobalStage:
             pre, results, out, lambda kept: self.run(ctx, pre, kept, progress, timed),
             ctx.voxel, ctx.cfg.align, discrete=self.plan.model_search,
         )  # fmt: skip
+        timed("verify")  # after the last re-solve (whose stages overwrite their timings)
         if self.plan.model_search and out.solution is not None:
             verified = {s: T for s, T in out.T_world_scan.items() if s not in dropped}
             todo = [s for s in range(len(pre)) if s not in verified and _worth_placing(ver.get(s))]

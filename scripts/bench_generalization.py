@@ -33,6 +33,7 @@ until the last run is in).
     python scripts/bench_generalization.py                          # 3 seeds x 2 resolutions x 22 objects
     python scripts/bench_generalization.py --seeds 1 --resolutions sparse,dense
     python scripts/bench_generalization.py --meshes 'bunny,builtin:*' --jobs 2
+    python scripts/bench_generalization.py --first-seed 2 --seeds 1 --jobs 2   # seed 2 only
     python scripts/bench_generalization.py --quick                  # builtin:1, seed 0, 5 views, ~1500 points
 """
 
@@ -554,6 +555,7 @@ def write_outputs(out: Path, rows: list[dict], meta: dict, total: int) -> None:
 def main(argv: list[str] | None = None) -> dict:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--seeds", type=int, default=3, help="seeds 0..N-1 (default 3)")
+    ap.add_argument("--first-seed", type=int, default=0, help="start the seeds here")
     ap.add_argument("--resolutions", default="sparse,dense", help=f"from {list(RESOLUTIONS)}")
     ap.add_argument(
         "--meshes", default=None, help="comma-separated globs/substrings (e.g. 'bunny,builtin:*')"
@@ -585,7 +587,7 @@ def main(argv: list[str] | None = None) -> dict:
         meshes, seeds, resolutions, views = ["builtin:1"], [0], ["tiny"], 5
     else:
         meshes = corpus(args.meshes)
-        seeds = list(range(args.seeds))
+        seeds = list(range(args.first_seed, args.first_seed + args.seeds))
         resolutions = [r.strip() for r in args.resolutions.split(",") if r.strip()]
         views = args.views
     for r in resolutions:

@@ -24,6 +24,7 @@ from mvreg.config.tracks import TracksConfig
 from mvreg.executor import Executor
 from mvreg.geometry import invert_transform, transform_points
 from mvreg.globalstage.robust import robust_weights
+from mvreg.globalstage.scan_model import cell_sharing
 from mvreg.globalstage.solve import GlobalSolution, TrackSolver, max_translation_change
 from mvreg.pairwise import PreprocessedScan, mutual_correspondences, resample
 from mvreg.pairwise.icp import icp_point_to_plane
@@ -63,14 +64,7 @@ def overlapping_pairs(
 def _closest_partners(world, over: np.ndarray, cell: float, k: int) -> np.ndarray:
     """(n, n) bool: (a, b) when b is among the k candidates (``over``) of a that share
     the largest fraction of occupied cells, or a among those of b (ties: lower index)."""
-    import scipy.sparse as sp
-
-    cells = [np.unique(np.floor(w / cell).astype(np.int64), axis=0) for w in world]
-    _, ids = np.unique(np.concatenate(cells), axis=0, return_inverse=True)
-    rows = np.repeat(np.arange(len(cells)), [len(c) for c in cells])
-    occ = sp.csr_matrix((np.ones(len(ids)), (rows, ids.ravel())))
-    shared = (occ @ occ.T).toarray()
-    size = np.diag(shared).copy()
+    shared, size = cell_sharing(world, cell)
     frac = shared / np.maximum(np.minimum(size[:, None], size[None]), 1.0)
     keep = np.zeros_like(over)
     for a in range(len(world)):

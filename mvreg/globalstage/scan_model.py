@@ -3,6 +3,9 @@ scan's points fit it (shared by :mod:`mvreg.globalstage.verify` and
 :mod:`mvreg.globalstage.model_search`).
 
 Contract: :func:`scan_model` builds the :class:`ScanModel` of some scans under their poses;
+:func:`model_members` chooses, per scan, the other scans a check of it runs against (all of
+them up to :data:`MODEL_SCANS`, else those covering most of its surface, so the checks'
+cost grows with the scans, not their square);
 :func:`model_fit` scores world points with normals on it (overlap share of tight matches,
 median point-to-plane residual over the scans' noise, which model points matched);
 :func:`equally_good` says whether one pose's score is as good as another's within the
@@ -11,6 +14,7 @@ sampling spread.
 
 from __future__ import annotations
 
+from collections.abc import Sequence
 from dataclasses import dataclass
 
 import numpy as np
@@ -18,6 +22,43 @@ from scipy.spatial import cKDTree
 
 from mvreg.config.align import AlignConfig
 from mvreg.geometry import transform_points
+
+MODEL_SCANS = 24
+"""A scan is checked against at most this many others (its largest overlaps; as many as
+the joint ICP's partners): the model of 24 scans that share the most of its surface covers
+it as well as the model of all (issue 14: 80 builtin scans, verification 120 s -> see
+docs/benchmarks/scale.md)."""
+
+
+def cell_sharing(world: Sequence[np.ndarray], cell: float) -> tuple[np.ndarray, np.ndarray]:
+    """(shared (n, n), size (n,)): how many cells of side ``cell`` each two point sets of
+    ``world`` both occupy, and how many each occupies."""
+    import scipy.sparse as sp
+
+    cells = [np.unique(np.floor(w / cell).astype(np.int64), axis=0) for w in world]
+    _, ids = np.unique(np.concatenate(cells), axis=0, return_inverse=True)
+    rows = np.repeat(np.arange(len(cells)), [len(c) for c in cells])
+    occ = sp.csr_matrix((np.ones(len(ids)), (rows, ids.ravel())), shape=(len(cells), ids.max() + 1))
+    shared = (occ @ occ.T).toarray()
+    return shared, np.diag(shared).copy()
+
+
+def model_members(pre, T_world_scan, cell: float, k: int = MODEL_SCANS) -> dict[int, list[int]]:
+    """{scan: the other registered scans it is checked against}: all of them when there
+    are at most ``k``, else the ``k`` that occupy the largest share of its cells of side
+    ``cell`` (ties: lower index), sorted."""
+    scans = sorted(T_world_scan)
+    if len(scans) - 1 <= k:
+        return {s: [o for o in scans if o != s] for s in scans}
+    world = [transform_points(T_world_scan[s], pre[s].points) for s in scans]
+    shared, size = cell_sharing(world, cell)
+    out = {}
+    for a, s in enumerate(scans):
+        frac = shared[a] / max(size[a], 1.0)
+        frac[a] = -1.0
+        order = np.lexsort((np.arange(len(scans)), -frac))[:k]
+        out[s] = sorted(scans[b] for b in order)
+    return out
 
 
 @dataclass

@@ -28,7 +28,7 @@ Contract (pure functions on arrays, preprocessed scans and pair results; no I/O)
     and, for (b), both free-space tests
     (:func:`mvreg.pairwise.align.free_space_violation`,
     :func:`~mvreg.pairwise.align.unseen_violation`) within the pairwise limits against
-    EVERY other registered scan (reported), a violation (above the pairwise limits loosened
+    every scan of its model (reported), a violation (above the pairwise limits loosened
     by ``coarse_gate_slack``) counting as a conflict with a scan that shares tight matches
     with it; a conflict counts against this scan when the other
     one's own evidence is stronger (cycle > model check > neither). The tests are run and reported
@@ -60,6 +60,11 @@ others for a second, distant pose (:mod:`mvreg.globalstage.model_search`): one t
 as well makes the scan ``"undetermined"`` (``degenerate_dof`` names the discrete turn),
 one that fits better makes it ``"unverified"``.
 
+"The other scans" are, for each scan, at most
+:data:`~mvreg.globalstage.scan_model.MODEL_SCANS` of them, those that cover most of its
+surface (:func:`~mvreg.globalstage.scan_model.model_members`; all of them in smaller sets),
+so the cost grows with the scans, not with their square.
+
 Every threshold comes from the data (feature voxel, the scans' noise estimates, point
 counts) or from the pairwise acceptance rule already in the configuration; none is fitted
 to an object.
@@ -88,6 +93,7 @@ from mvreg.globalstage.scan_model import (
     ScanModel,
     equally_good,
     model_fit,
+    model_members,
     normal_matrix,
     overlap_spread,
     scan_model,
@@ -303,9 +309,10 @@ def verify_scans(
     cycle = on_cycle(graph) & main
     out: dict[int, ScanVerification] = {}
     conflicts: dict[int, list[tuple[int, str]]] = {}
+    members = model_members(pre, T_world_scan, 2.0 * voxel)
     for s in scans:
         out[s], conflicts[s] = _check_scan(
-            s, pre, T_world_scan, graph, cycle, main, voxel, acfg, agree_voxels
+            s, pre, T_world_scan, graph, cycle, main, voxel, acfg, agree_voxels, members[s]
         )
     _settle_conflicts(out, conflicts, scans)
     if discrete:
@@ -352,8 +359,9 @@ def search_alternatives(out, graph, pre, T_world_scan, voxel, acfg, results=()) 
             _mark_symmetric(out, verified, sym)
             return
         turns = axis_turns(whole.points, whole.normals)  # a near axis of revolution
+    members = model_members(pre, T_world_scan, 2.0 * voxel)
     for s in scans:
-        others = [k for k in scans if k != s]
+        others = members[s]
         if out[s].status != "verified" or len(others) < 2:
             continue
         model = scan_model(pre, T_world_scan, others)
@@ -378,8 +386,9 @@ def search_alternatives(out, graph, pre, T_world_scan, voxel, acfg, results=()) 
                 _mark(out[s], alt, ", ".join(names[k] for k in group if k != s))
 
 
-def _check_scan(s, pre, T_world_scan, graph, cycle, main, voxel, acfg, agree_voxels):
-    """(ScanVerification of scan ``s`` before conflicts are settled, its conflicts).
+def _check_scan(s, pre, T_world_scan, graph, cycle, main, voxel, acfg, agree_voxels, others):
+    """(ScanVerification of scan ``s`` before conflicts are settled, its conflicts),
+    checked against the scans ``others`` (:func:`model_members`).
 
     Outside the main block of agreeing pairs (:func:`main_block`), only support from scans
     of the main block counts: a group that agrees with itself cannot confirm itself. With
@@ -387,9 +396,7 @@ def _check_scan(s, pre, T_world_scan, graph, cycle, main, voxel, acfg, agree_vox
     scan counts (:func:`mvreg.globalstage.graph.one_side`): scans on two sides are placed
     relative to each other through this scan alone, so they cannot confirm it."""
     names = [p.name for p in pre]
-    scans = sorted(T_world_scan)
     v = ScanVerification(status="verified", agreeing_pairs=[names[k] for k in sorted(graph[s])])
-    others = [k for k in scans if k != s]
     T = T_world_scan[s]
     pts = transform_points(T, pre[s].fine_points)
     nrm = pre[s].fine_normals @ T[:3, :3].T
@@ -426,8 +433,8 @@ def _check_scan(s, pre, T_world_scan, graph, cycle, main, voxel, acfg, agree_vox
 
 
 def free_space_conflicts(v, s, others, support, pre, T_world_scan, names, acfg) -> list:
-    """Both free-space tests of scan ``s`` against every other scan (the largest values go
-    into ``v``); the conflicts, with scans ``s`` shares close matches with only."""
+    """Both free-space tests of scan ``s`` against every scan of ``others`` (the largest
+    values go into ``v``); the conflicts, with scans ``s`` shares close matches with only."""
     T = T_world_scan[s]
     fs_all, un_all, conflicts = [], [], []
     for k in others:

@@ -51,6 +51,7 @@ from scipy.spatial import cKDTree
 from mvreg.config.preprocess import PreprocessConfig
 from mvreg.errors import ConfigError
 from mvreg.executor import Executor, make_executor, map_shared, single_threaded_blas
+from mvreg.pairwise.normals import estimate_normals
 from mvreg.scales import Scales
 
 if TYPE_CHECKING:
@@ -229,12 +230,6 @@ def scan_spacing(_shared, scan: Scan) -> float:
     return median_spacing(scan.points)
 
 
-def _estimate_normals(pcd, radius: float, max_nn: int) -> None:
-    import open3d as o3d
-
-    pcd.estimate_normals(o3d.geometry.KDTreeSearchParamHybrid(radius=radius, max_nn=max_nn))
-
-
 def _orient_like(normals: np.ndarray, points: np.ndarray, ref_points, ref_normals) -> np.ndarray:
     """Flip each normal to agree with the normal of the nearest reference point."""
     _, idx = cKDTree(ref_points).query(points)
@@ -358,7 +353,7 @@ def _preprocess(scan: Scan, v: float, cfg: PreprocessConfig) -> PreprocessedScan
         )
     file_normals = np.asarray(coarse.normals).copy() if scan.normals is not None else None
     coarse.normals = o3d.utility.Vector3dVector()
-    _estimate_normals(coarse, cfg.normal_radius_voxels * v, cfg.normal_max_neighbours)
+    estimate_normals(coarse, cfg.normal_radius_voxels * v, cfg.normal_max_neighbours)
     normals, orientation, seen_from = _oriented_normals(
         coarse, pts, file_normals, scan, keep, v, cfg
     )
@@ -391,7 +386,8 @@ def _preprocess(scan: Scan, v: float, cfg: PreprocessConfig) -> PreprocessedScan
     )
     if seen_from is not None:  # a single view seen from there
         direction = seen_from - fine_pts.mean(0)
-        direction /= np.linalg.norm(direction)
+        length = np.linalg.norm(direction)  # 0 for a sensor at the centroid of a surround scan
+        direction = direction / length if length > 1e-9 * fine_v else np.array([0.0, 0.0, 1.0])
         out.view_facing = float(np.mean(normals @ direction > 0.05))
         out.view_direction, out.viewpoint = direction, seen_from
     else:
@@ -458,7 +454,7 @@ def _resample(raw, voxel: float, cfg: PreprocessConfig, ref_pts, ref_nrm, strays
         if 10 <= len(keep) < len(pts):
             down = down.select_by_index(keep)
     down.normals = type(down.normals)()
-    _estimate_normals(down, cfg.normal_radius_voxels * voxel, cfg.normal_max_neighbours)
+    estimate_normals(down, cfg.normal_radius_voxels * voxel, cfg.normal_max_neighbours)
     pts = np.asarray(down.points).copy()
     return pts, _orient_like(np.asarray(down.normals).copy(), pts, ref_pts, ref_nrm)
 

@@ -39,6 +39,7 @@ from mvreg.config.align import AlignConfig
 from mvreg.geometry import invert_transform, transform_points
 from mvreg.pairwise.icp import feature_level_tree, nearest_with_normals
 from mvreg.pairwise.preprocess import PreprocessedScan, scan_scales
+from mvreg.pairwise.view_projection import ViewProjection, cell_keys, neighbour_keys
 from mvreg.scales import Scales
 
 
@@ -94,48 +95,24 @@ def score_alignment(
 # ---------------------------------------------------------------------------- view tests
 
 
-class ViewProjection:
-    """How a single view saw space: from its sensor position ``c`` (perspective; lateral
-    coordinates on the image plane through the scan's centroid, depth = -range) or, when
-    ``c`` is None, along its view direction ``d`` (orthographic; depth = p . d). Larger
-    depth is nearer the sensor; lateral units are lengths at the scan's depth."""
-
-    def __init__(self, d: np.ndarray, c: np.ndarray | None, centroid: np.ndarray):
-        self.d = np.asarray(d, dtype=np.float64)
-        a = np.cross(self.d, [1.0, 0.0, 0.0] if abs(self.d[0]) < 0.9 else [0.0, 1.0, 0.0])
-        a /= np.linalg.norm(a)
-        self.F = np.stack([a, np.cross(self.d, a)])
-        self.c = None if c is None else np.asarray(c, dtype=np.float64)
-        self.focal = None if c is None else float((self.c - centroid) @ self.d)
-
-    def project(self, points: np.ndarray, normals: np.ndarray):
-        """(lateral (n, 2), depth (n,), cosine of normal and sensor direction (n,), in
-        front of the sensor (n,) bool) of ``points`` in the scan's frame."""
-        if self.c is None:
-            return points @ self.F.T, points @ self.d, normals @ self.d, np.ones(len(points), bool)
-        q = self.c - points
-        z = q @ self.d
-        ahead = z > 1e-9 * max(self.focal, 1e-300)
-        r = np.linalg.norm(q, axis=1)
-        lateral = (-q @ self.F.T) * (self.focal / np.where(ahead, z, 1.0))[:, None]
-        cos = np.einsum("ij,ij->i", normals, q) / np.maximum(r, 1e-300)
-        return lateral, -r, cos, ahead
-
-
 def view_projection(pre: PreprocessedScan) -> ViewProjection | None:
     """The scan's :class:`ViewProjection` (cached); None when it is not a single view."""
     if pre.view_direction is None:
         return None
     if "view_projection" not in pre._cache:
         pre._cache["view_projection"] = ViewProjection(
-            pre.view_direction, pre.viewpoint, pre.fine_points.mean(0)
+            pre.view_direction, pre.viewpoint, pre.fine_points
         )
     return pre._cache["view_projection"]
 
 
 def depth_grid(pre: PreprocessedScan, fine_voxel: float):
     """Front-most depth of the fine points per cell (1.5 fine voxels) of a grid across the
-    view: (projection, cell, sorted cell keys, depths); None without a view."""
+    view: (projection, cell, sorted cell keys, depths); None without a view. For a
+    spherical view, each point counts in its cell and the 26 around it: a spinning
+    sensor's beams lie farther apart than a fine cell, and a cell between two beams holds
+    only what a beam beside it saw past the top of a low object (scene of 60 LiDAR
+    stations: true poses read up to 0.043 of free-space violation with single cells)."""
     view = view_projection(pre)
     if view is None:
         return None
@@ -144,6 +121,8 @@ def depth_grid(pre: PreprocessedScan, fine_voxel: float):
     if cached is None or cached[1] != cell:
         lateral, depth, _, _ = view.project(pre.fine_points, pre.fine_normals)
         keys = cell_keys(lateral, cell)
+        if view.spherical:
+            keys, depth = neighbour_keys(keys).ravel(), np.repeat(depth, 27)
         order = np.lexsort((depth, keys))
         keys, depth = keys[order], depth[order]
         last = np.flatnonzero(np.r_[keys[1:] != keys[:-1], True])
@@ -153,22 +132,20 @@ def depth_grid(pre: PreprocessedScan, fine_voxel: float):
 
 def lateral_tree(pre: PreprocessedScan):
     """(projection, KD-tree of the fine points' lateral coordinates); None without a
-    view."""
+    view. A spherical view's feature-level points count too: far from a spinning sensor
+    its samples lie farther apart than the fine level's stray filter allows, and the
+    directions it measured there would read as unseen (60 LiDAR stations: true poses of
+    neighbours read 0.04-0.10 of unseen points at 11.3-11.5 m of an 11.5 m range)."""
     view = view_projection(pre)
     if view is None:
         return None
     if "lateral_tree" not in pre._cache:
-        lateral, _, _, _ = view.project(pre.fine_points, pre.fine_normals)
+        pts, nrm = pre.fine_points, pre.fine_normals
+        if view.spherical:
+            pts, nrm = np.vstack([pts, pre.points]), np.vstack([nrm, pre.normals])
+        lateral, _, _, _ = view.project(pts, nrm)
         pre._cache["lateral_tree"] = (view, cKDTree(lateral))
     return pre._cache["lateral_tree"]
-
-
-def cell_keys(lateral: np.ndarray, cell: float) -> np.ndarray:
-    """One int64 key per point: its cell of a square grid of side ``cell`` over the
-    (n, 2) lateral coordinates."""
-    u = np.floor(lateral[:, 0] / cell).astype(np.int64)
-    w = np.floor(lateral[:, 1] / cell).astype(np.int64)
-    return (u << 32) + w  # exact for |u|, |w| < 2**31 cells
 
 
 def _violations(grid, points, normals, tolerance, min_cos, min_count) -> float:
@@ -181,7 +158,8 @@ def _violations(grid, points, normals, tolerance, min_cos, min_count) -> float:
     seen = keys[pos] == k
     c = cos[facing]
     slope = np.sqrt(np.clip(1.0 - c**2, 0.0, 1.0)) / np.maximum(c, 1e-3)
-    ahead_of = depth[facing] > front[pos] + tolerance + cell * slope
+    span = cell * view.lateral_scale(depth[facing])  # a cell's width at the point's depth
+    ahead_of = depth[facing] > front[pos] + tolerance + span * slope
     bad = _clustered(points[facing][seen & ahead_of], cell)
     return float(bad / max(np.count_nonzero(seen), min_count))
 
@@ -230,10 +208,11 @@ def free_space_violation(
 
 def _unseen(lateral, points, normals, radius, min_cos, min_count) -> float:
     view, tree = lateral
-    lat, _, cos, ahead = view.project(points, normals)
-    facing = (cos >= min_cos) & ahead
-    dist, _ = tree.query(lat[facing], distance_upper_bound=radius)
-    return float(np.count_nonzero(np.isinf(dist)) / max(np.count_nonzero(facing), min_count))
+    lat, depth, cos, ahead = view.project(points, normals)
+    facing = (cos >= min_cos) & ahead & view.could_see(lat, depth)
+    reach = radius / view.lateral_scale(depth[facing])  # the radius at the point's depth
+    dist, _ = tree.query(lat[facing], distance_upper_bound=np.max(reach, initial=0.0))
+    return float(np.count_nonzero(dist > reach) / max(np.count_nonzero(facing), min_count))
 
 
 def unseen_violation(

@@ -93,21 +93,41 @@ def overlap_residual(
     from scipy.spatial import cKDTree
 
     rng = np.random.default_rng(seed)
-    trees = [cKDTree(p) for p in points_world]
+    union = cKDTree(np.concatenate(points_world)) if points_world else None
+    # Owner of each union point; one more entry (-1) for the index of "no neighbour".
+    owner = np.concatenate([np.full(len(p), i) for i, p in enumerate(points_world)] + [[-1]])
     all_d, per_scan = [], []
     total = 0
     for i, p in enumerate(points_world):
         q = p if len(p) <= max_points else p[rng.choice(len(p), max_points, replace=False)]
-        best = np.full(len(q), np.inf)
-        for j, t in enumerate(trees):
-            if j != i:
-                d, _ = t.query(q, distance_upper_bound=max_distance)
-                best = np.minimum(best, d)
+        best = _nearest_of_others(union, owner, i, q, max_distance)
         ok = best < max_distance
         total += len(q)
         all_d.append(best[ok])
         per_scan.append(float(np.median(best[ok])) if np.any(ok) else None)
     return residual_summary(all_d, total, per_scan, max_distance)
+
+
+def _nearest_of_others(union, owner, i, q, max_distance: float) -> np.ndarray:
+    """Distance from each of ``q`` to the nearest point of ``union`` not owned by scan
+    ``i`` (inf beyond ``max_distance``): the k nearest, k growing for the points whose k
+    nearest within reach are all scan ``i``'s own (one union tree instead of one query per
+    other scan: linear in the scans, not quadratic)."""
+    best = np.full(len(q), np.inf)
+    todo = np.arange(len(q))
+    k = 8
+    while len(todo):
+        k = min(k, len(owner) - 1)
+        d, idx = union.query(q[todo], k=k, distance_upper_bound=max_distance)
+        d, idx = d.reshape(len(todo), -1), idx.reshape(len(todo), -1)
+        others = np.where(owner[idx] == i, np.inf, d)
+        best[todo] = others.min(axis=1)
+        # Unresolved: no other scan among the k, and the k-th is still within reach.
+        unresolved = np.isinf(best[todo]) & np.isfinite(d[:, -1])
+        if k >= len(owner) - 1:
+            break
+        todo, k = todo[unresolved], 8 * k
+    return best
 
 
 def residual_summary(all_d: list, total: int, per_scan: list, max_distance: float) -> dict:

@@ -103,3 +103,34 @@ def test_pair_residuals_same_as_per_pair_masks():
     assert np.array_equal(
         pair_residuals(tracks, T), _pair_residuals_reference(tracks, T), equal_nan=True
     )
+
+
+def test_overlap_residual_equals_the_query_of_every_other_scan():
+    """One union tree with growing k gives the same figures as querying every other
+    scan's tree (the per-scan loop it replaced: M^2 queries), including a scan far from
+    all others within reach (k must grow past all its own points)."""
+    from scipy.spatial import cKDTree
+
+    from mvreg.metrics import overlap_residual, residual_summary
+
+    rng = np.random.default_rng(0)
+    pts = [rng.normal(size=(1500, 3)) * (1 + 0.1 * i) + 0.05 * i for i in range(8)]
+    pts.append(rng.normal(size=(40, 3)) + 30.0)
+    for max_d in (0.05, 0.3, 100.0):
+        trees = [cKDTree(p) for p in pts]
+        sample = np.random.default_rng(0)
+        best_all = []
+        for i, p in enumerate(pts):
+            q = p if len(p) <= 1000 else p[sample.choice(len(p), 1000, replace=False)]
+            best = np.full(len(q), np.inf)
+            for j, t in enumerate(trees):
+                if j != i:
+                    best = np.minimum(best, t.query(q, distance_upper_bound=max_d)[0])
+            best_all.append(best)
+        ref = residual_summary(
+            [b[b < max_d] for b in best_all],
+            sum(len(b) for b in best_all),
+            [float(np.median(b[b < max_d])) if np.any(b < max_d) else None for b in best_all],
+            max_d,
+        )
+        assert overlap_residual(pts, max_d, max_points=1000) == ref

@@ -52,6 +52,7 @@ from mvreg.config.preprocess import PreprocessConfig
 from mvreg.errors import ConfigError
 from mvreg.executor import Executor, make_executor, map_shared, single_threaded_blas
 from mvreg.pairwise.normals import estimate_normals
+from mvreg.pairwise.view_projection import surrounds
 from mvreg.scales import Scales
 
 if TYPE_CHECKING:
@@ -357,6 +358,11 @@ def _preprocess(scan: Scan, v: float, cfg: PreprocessConfig) -> PreprocessedScan
     normals, orientation, seen_from = _oriented_normals(
         coarse, pts, file_normals, scan, keep, v, cfg
     )
+    grow = seen_from is not None and surrounds(pts, seen_from)  # rings of a spinning sensor
+    if grow:  # again, from neighbourhoods that span the surface; signs towards the sensor
+        estimate_normals(coarse, cfg.normal_radius_voxels * v, cfg.normal_max_neighbours, grow)
+        n = np.asarray(coarse.normals)
+        normals = n * np.where(np.einsum("ij,ij->i", n, seen_from - pts) < 0, -1.0, 1.0)[:, None]
     coarse.normals = o3d.utility.Vector3dVector(normals)
     fpfh = o3d.pipelines.registration.compute_fpfh_feature(
         coarse,
@@ -365,7 +371,7 @@ def _preprocess(scan: Scan, v: float, cfg: PreprocessConfig) -> PreprocessedScan
         ),
     )
     fine_v = cfg.fine_voxel_ratio * v
-    fine_pts, fine_nrm = _resample(raw, fine_v, cfg, pts, normals)
+    fine_pts, fine_nrm = _resample(raw, fine_v, cfg, pts, normals, grow=grow)
     if seen_from is not None:
         fine_nrm *= np.where(np.einsum("ij,ij->i", fine_nrm, seen_from - fine_pts) < 0, -1.0, 1.0)[
             :, None
@@ -445,7 +451,7 @@ def _estimated_viewpoint(scan: Scan, keep, cfg: PreprocessConfig, axis=None) -> 
     return c
 
 
-def _resample(raw, voxel: float, cfg: PreprocessConfig, ref_pts, ref_nrm, strays=True):
+def _resample(raw, voxel: float, cfg: PreprocessConfig, ref_pts, ref_nrm, strays=True, grow=False):
     down = raw.voxel_down_sample(voxel)
     if strays and cfg.fine_min_neighbours > 0:
         pts = np.asarray(down.points)
@@ -454,7 +460,7 @@ def _resample(raw, voxel: float, cfg: PreprocessConfig, ref_pts, ref_nrm, strays
         if 10 <= len(keep) < len(pts):
             down = down.select_by_index(keep)
     down.normals = type(down.normals)()
-    estimate_normals(down, cfg.normal_radius_voxels * voxel, cfg.normal_max_neighbours)
+    estimate_normals(down, cfg.normal_radius_voxels * voxel, cfg.normal_max_neighbours, grow)
     pts = np.asarray(down.points).copy()
     return pts, _orient_like(np.asarray(down.normals).copy(), pts, ref_pts, ref_nrm)
 
@@ -468,8 +474,9 @@ def resample(
     (P, 3) unit normals, float64, in the scan's local frame.
     """
     cfg = cfg or PreprocessConfig()
+    grow = pre.viewpoint is not None and surrounds(pre.points, pre.viewpoint)
     return _resample(
-        _to_o3d(scan.points), float(voxel_size), cfg, pre.points, pre.normals, strays=False
+        _to_o3d(scan.points), float(voxel_size), cfg, pre.points, pre.normals, False, grow
     )
 
 

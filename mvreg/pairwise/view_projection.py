@@ -60,6 +60,22 @@ def _dilated(keys: np.ndarray) -> np.ndarray:
     return np.unique(neighbour_keys(np.unique(keys)).ravel())
 
 
+def surrounds(points: np.ndarray, c: np.ndarray, d: np.ndarray | None = None) -> bool:
+    """Whether the points lie around the sensor at ``c`` rather than before it: the 99th
+    percentile of their angle from the axis ``-d`` (``d``: unit direction from the points
+    towards the sensor; default from their centroid) beyond ``PERSPECTIVE_MAX_DEG``."""
+    rays = points - c
+    if d is None:
+        d = c - points.mean(0)
+        length = np.linalg.norm(d)
+        if length <= 0:
+            return True
+        d = d / length
+    r = np.maximum(np.linalg.norm(rays, axis=1), 1e-300)
+    off_axis = np.degrees(np.arccos(np.clip(-(rays @ d) / r, -1.0, 1.0)))
+    return bool(np.percentile(off_axis, 99) > PERSPECTIVE_MAX_DEG)
+
+
 class ViewProjection:
     """How a single view saw space (module docstring). ``d``: unit direction from the
     scan's centroid towards its sensor; ``c``: the sensor position or None
@@ -77,11 +93,10 @@ class ViewProjection:
         self.spherical = False
         if self.c is None:
             return
+        if not surrounds(points, self.c, self.d):
+            return
         rays = points - self.c
         r = np.linalg.norm(rays, axis=1)
-        off_axis = np.degrees(np.arccos(np.clip(-(rays @ self.d) / np.maximum(r, 1e-300), -1, 1)))
-        if np.percentile(off_axis, 99) <= PERSPECTIVE_MAX_DEG:
-            return
         self.spherical = True
         self.radius = float(np.median(r))
         self.max_range = float(r.max())

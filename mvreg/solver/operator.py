@@ -218,73 +218,45 @@ def _normalization(problem: PatchProblem) -> Normalization:
     return Normalization(centroids=cen, scale=scale)
 
 
-def _observation_pairs(node_sorted: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """All ordered pairs (a, b), a != b, of positions in a node-sorted array sharing a node."""
-    k = node_sorted.shape[0]
-    starts = np.flatnonzero(np.r_[True, node_sorted[1:] != node_sorted[:-1]])
-    sizes = np.diff(np.r_[starts, k])
-    group_start = np.repeat(starts, sizes)
-    r = np.repeat(sizes, sizes)
-    pos = np.arange(k) - group_start
-    c = r - 1
-    a = np.repeat(np.arange(k), c)
-    within = np.arange(int(c.sum())) - np.repeat(np.cumsum(c) - c, c)
-    b = group_start[a] + within + (within >= pos[a])
-    return a, b
-
-
 def _assemble(problem: PatchProblem, norm: Normalization):
-    d, m = problem.d, problem.num_patches
+    """(C0, B, S) of the REG cost with the node positions eliminated, as sparse products.
+
+    Node k's optimal position is the weighted mean of its observations, so the cost is
+    sum_a w_a ||y_a||^2 - sum_k ||sum_a w_a y_a||^2 / n_k over observations a (y_a =
+    R_p x_a + t_p, n_k the node's total weight): a block-diagonal part per patch minus
+    ``A A^T`` with one column of A per node holding w_a / sqrt(n_k) times each of its
+    observations. One sparse product does what expanding every pair of observations of
+    each node would (cost and memory growing with the squared track length)."""
+    d, m, n = problem.d, problem.num_patches, problem.num_nodes
     mask = problem.shared_mask()  # other observations contribute exactly zero
     p = problem.patch[mask]
     k = problem.node_index[mask]
     w = problem.weight[mask]
     x = (problem.coords[mask] - norm.centroids[p]) / norm.scale
-    order = np.argsort(k, kind="stable")
-    p, k, w, x = p[order], k[order], w[order], x[order]
-    nk = np.bincount(k, weights=w, minlength=problem.num_nodes)
-    # Diagonal terms, one per observation.
-    wd = w * (1.0 - w / nk[k])
-    # Off-diagonal terms, one per ordered pair of observations of one node.
-    a, b = _observation_pairs(k)
-    wp = w[a] * w[b] / nk[k[a]]
-    pi, pj = p[a], p[b]
-    # Aggregate pair terms per (i, j) block.
-    key = pi * m + pj
-    ukey, inv = np.unique(key, return_inverse=True)
-    bi, bj = ukey // m, ukey % m
-    nb = ukey.shape[0]
-
-    def agg(values):
-        return np.bincount(inv, weights=values, minlength=nb)
-
-    def agg_diag(values):
-        return np.bincount(p, weights=values, minlength=m)
-
-    # S
-    s_off = -agg(wp)
-    s_diag = agg_diag(wd)
-    S = sp.csr_matrix(
-        (np.r_[s_diag, s_off], (np.r_[np.arange(m), bi], np.r_[np.arange(m), bj])), shape=(m, m)
+    nk = np.bincount(k, weights=w, minlength=n)
+    s = w / np.sqrt(nk[k])
+    Q = sp.csr_matrix((s, (p, k)), shape=(m, n))
+    rows = (p[:, None] * d + np.arange(d)).ravel()
+    A = sp.csr_matrix(((s[:, None] * x).ravel(), (rows, np.repeat(k, d))), shape=(m * d, n))
+    at = A.T.tocsr()
+    patch_rows = np.arange(m * d)
+    S = (sp.diags(np.bincount(p, weights=w, minlength=m)) - Q @ Q.T).tocsr()
+    wx = np.stack([np.bincount(p, weights=w * x[:, r], minlength=m) for r in range(d)], 1)
+    B_diag = sp.csr_matrix((wx.ravel(), (patch_rows, patch_rows // d)), shape=(m * d, m))
+    B = (B_diag - A @ Q.T).tocsr()
+    wxx = [
+        np.bincount(p, weights=w * x[:, r] * x[:, c], minlength=m)
+        for r in range(d)
+        for c in range(d)
+    ]
+    r, c = np.divmod(np.arange(d * d), d)
+    C_diag = sp.csr_matrix(
+        (
+            np.stack(wxx, 1).ravel(),
+            ((np.arange(m)[:, None] * d + r).ravel(), (np.arange(m)[:, None] * d + c).ravel()),
+        ),
+        shape=(m * d, m * d),
     )
-    # B (n x M): rows i*d+r, column j
-    rows, cols, vals = [], [], []
-    for r in range(d):
-        rows += [np.arange(m) * d + r, bi * d + r]
-        cols += [np.arange(m), bj]
-        vals += [agg_diag(wd * x[:, r]), -agg(wp * x[a, r])]
-    B = sp.csr_matrix(
-        (np.concatenate(vals), (np.concatenate(rows), np.concatenate(cols))), shape=(m * d, m)
-    )
-    # C0 (n x n): block (i, j) entry (r, c)
-    rows, cols, vals = [], [], []
-    for r in range(d):
-        for c in range(d):
-            rows += [np.arange(m) * d + r, bi * d + r]
-            cols += [np.arange(m) * d + c, bj * d + c]
-            vals += [agg_diag(wd * x[:, r] * x[:, c]), -agg(wp * x[a, r] * x[b, c])]
-    C0 = sp.csr_matrix(
-        (np.concatenate(vals), (np.concatenate(rows), np.concatenate(cols))), shape=(m * d, m * d)
-    )
+    C0 = C_diag - A @ at
     C0 = (0.5 * (C0 + C0.T)).tocsr()
     return C0, B, S

@@ -52,6 +52,11 @@ class SequenceConfig(BaseModel):
     normal_radius_voxels: float = Field(
         6.0, gt=0, description="... within this many voxels of the level (feature or fine)"
     )
+    view_tests: bool = Field(
+        True,
+        description="each frame is a view from its sensor (the frame origin): pairs and "
+        "verification test free space (a frame put where another frame saw empty space)",
+    )
     correspondences: Literal["pose", "nearest"] = Field(
         "pose", description="tracks from each pair's pose (pose_tracks) or nearest points"
     )

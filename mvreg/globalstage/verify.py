@@ -427,6 +427,8 @@ def _check_scan(s, pre, T_world_scan, graph, cycle, main, voxel, acfg, agree_vox
     elif not main:
         support = one_side(graph, s, support)
     problems = _model_problems(overlap, ratio, support, graph[s], v, names, acfg)
+    if not problems:
+        problems = _unpinned(pts, nrm, pre[s].noise, support, pre, T_world_scan, voxel, acfg)
     if problems:
         v.status, v.reason = "unverified", "; ".join(problems)
     return v, conflicts
@@ -456,6 +458,24 @@ def free_space_conflicts(v, s, others, support, pre, T_world_scan, names, acfg) 
     v.free_space_violation = float(np.nanmax(fs_all)) if np.any(np.isfinite(fs_all)) else None
     v.unseen_violation = float(np.nanmax(un_all)) if np.any(np.isfinite(un_all)) else None
     return conflicts
+
+
+def _unpinned(pts, nrm, noise_s, support, pre, T_world_scan, voxel, acfg) -> list[str]:
+    """Whether the supporting scans alone fix every degree of freedom of the scan (world
+    ``pts``, ``nrm``): :func:`degenerate_direction` against the model of ``support`` (the
+    scans placed independently of this one). Two scans can touch a scan on a surface that
+    fixes only some of its pose (a ground plane shared with the rest of a scene fixes
+    height, roll and pitch, not heading), while the rest of its fit comes from scans
+    that agree with it because they hang on the same pair: scene of 60 LiDAR stations,
+    six stations 143 deg off "verified" by the ground they shared with the others."""
+    model = scan_model(pre, T_world_scan, support)
+    _, _, tight, idx, noise = model_fit(model, pts, nrm, noise_s, voxel, acfg)
+    if np.count_nonzero(tight) < 2 * acfg.min_correspondences:
+        return [f"only {np.count_nonzero(tight)} close matches with the scans placed without it"]
+    dof = degenerate_direction(model, pts, nrm, tight, idx, noise, voxel, acfg)
+    if dof is None:
+        return []
+    return [f"the scans placed without it fix only part of its pose, not its {dof}"]
 
 
 def _model_problems(overlap, ratio, support, agreeing, v, names, acfg) -> list[str]:

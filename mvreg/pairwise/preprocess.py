@@ -391,11 +391,7 @@ def _preprocess(scan: Scan, v: float, cfg: PreprocessConfig) -> PreprocessedScan
         num_outliers_removed=int(np.count_nonzero(~keep)) if cfg.outlier_min_cell_share else 0,
     )
     if seen_from is not None:  # a single view seen from there
-        direction = seen_from - fine_pts.mean(0)
-        length = np.linalg.norm(direction)  # 0 for a sensor at the centroid of a surround scan
-        direction = direction / length if length > 1e-9 * fine_v else np.array([0.0, 0.0, 1.0])
-        out.view_facing = float(np.mean(normals @ direction > 0.05))
-        out.view_direction, out.viewpoint = direction, seen_from
+        set_viewpoint(out, seen_from, normals)
     else:
         direction, facing = view_direction(normals)
         out.view_facing = facing
@@ -405,6 +401,18 @@ def _preprocess(scan: Scan, v: float, cfg: PreprocessConfig) -> PreprocessedScan
     out._cache["o3d_feature"] = coarse
     out._cache["o3d_fpfh"] = fpfh
     return out
+
+
+def set_viewpoint(out: PreprocessedScan, seen_from: np.ndarray, normals: np.ndarray) -> None:
+    """Make ``out`` a single view seen from ``seen_from`` (its frame): viewpoint, view
+    direction (from the centroid of its fine points towards the sensor; +z for a sensor at
+    that centroid) and the share of ``normals`` facing it."""
+    direction = seen_from - out.fine_points.mean(0)
+    length = np.linalg.norm(direction)  # 0 for a sensor at the centroid of a surround scan
+    tiny = 1e-9 * out.fine_voxel_size
+    direction = direction / length if length > tiny else np.array([0.0, 0.0, 1.0])
+    out.view_facing = float(np.mean(normals @ direction > 0.05))
+    out.view_direction, out.viewpoint = direction, np.asarray(seen_from, float).copy()
 
 
 def _oriented_normals(coarse, pts, file_normals, scan: Scan, keep, v: float, cfg):

@@ -131,11 +131,13 @@ def depth_grid(pre: PreprocessedScan, fine_voxel: float):
 
 
 def lateral_tree(pre: PreprocessedScan):
-    """(projection, KD-tree of the fine points' lateral coordinates); None without a
-    view. A spherical view's feature-level points count too: far from a spinning sensor
-    its samples lie farther apart than the fine level's stray filter allows, and the
-    directions it measured there would read as unseen (60 LiDAR stations: true poses of
-    neighbours read 0.04-0.10 of unseen points at 11.3-11.5 m of an 11.5 m range)."""
+    """(projection, KD-tree of the fine points' lateral coordinates, each point's
+    sampling gap); None without a view. A spherical view's feature-level points count
+    too: far from a spinning sensor its samples lie farther apart than the fine level's
+    stray filter allows, and the directions it measured there would read as unseen (60
+    LiDAR stations: true poses of neighbours read 0.04-0.10 of unseen points at 11.3-11.5 m
+    of an 11.5 m range). The sampling gap of a point is the lateral distance to its third
+    nearest neighbour: how far apart the view sampled the surface there."""
     view = view_projection(pre)
     if view is None:
         return None
@@ -144,7 +146,9 @@ def lateral_tree(pre: PreprocessedScan):
         if view.spherical:
             pts, nrm = np.vstack([pts, pre.points]), np.vstack([nrm, pre.normals])
         lateral, _, _, _ = view.project(pts, nrm)
-        pre._cache["lateral_tree"] = (view, cKDTree(lateral))
+        tree = cKDTree(lateral)
+        gap = tree.query(lateral, k=min(4, len(lateral)))[0][:, -1]
+        pre._cache["lateral_tree"] = (view, tree, gap)
     return pre._cache["lateral_tree"]
 
 
@@ -207,12 +211,22 @@ def free_space_violation(
 
 
 def _unseen(lateral, points, normals, radius, min_cos, min_count) -> float:
-    view, tree = lateral
+    """Share of facing ``points`` farther across the view from its nearest point than
+    ``radius`` (at the point's depth) and than twice that point's sampling gap: a gap of
+    the view's own sampling (sparse rings far from a LiDAR) is no hole it saw through."""
+    view, tree, gap = lateral
     lat, depth, cos, ahead = view.project(points, normals)
     facing = (cos >= min_cos) & ahead & view.could_see(lat, depth)
     reach = radius / view.lateral_scale(depth[facing])  # the radius at the point's depth
-    dist, _ = tree.query(lat[facing], distance_upper_bound=np.max(reach, initial=0.0))
-    return float(np.count_nonzero(dist > reach) / max(np.count_nonzero(facing), min_count))
+    dist, nn = tree.query(lat[facing], distance_upper_bound=np.max(reach, initial=0.0))
+    hole = dist > reach
+    near = hole & np.isfinite(dist)  # beyond the reach at its depth, within the largest
+    hole[near] = dist[near] > 2.0 * gap[nn[near]]
+    far = np.flatnonzero(hole & ~near)
+    if len(far):
+        d2, n2 = tree.query(lat[facing][far])
+        hole[far] = d2 > 2.0 * gap[n2]
+    return float(np.count_nonzero(hole) / max(np.count_nonzero(facing), min_count))
 
 
 def unseen_violation(

@@ -17,6 +17,7 @@ from mvreg.pairwise.preprocess import (
     check_voxel_size,
     outlier_mask,
     plane_noise,
+    set_viewpoint,
 )
 
 
@@ -31,8 +32,9 @@ def preprocess_range_scan(
     Like :func:`mvreg.pairwise.preprocess.preprocess` (same levels, outlier removal and
     noise estimate) except for the normals: a range scan sees every surface from the
     sensor, so each normal is turned to face it, which is exact where the tangent-plane
-    propagation of ``preprocess`` fails (a LiDAR scan is many disconnected pieces). A
-    surround scan is no single view, so ``view_direction`` is None (no free-space test).
+    propagation of ``preprocess`` fails (a LiDAR scan is many disconnected pieces). With
+    ``seq.view_tests`` the scan is a view seen from its sensor (``viewpoint``; spherical
+    when its points surround it), so pairs and verification run the free-space tests.
     FPFH features are computed on demand by :func:`ensure_features` (only the feature
     RANSAC fallback needs them); until then ``features`` is an empty (0, 33) array.
     """
@@ -84,6 +86,8 @@ def preprocess_range_scan(
             num_raw_points=scan.num_points,
             num_outliers_removed=int(np.count_nonzero(~keep)),
         )
+    if seq.view_tests:
+        set_viewpoint(out, origin, nrm)
     out._cache["o3d_feature"] = coarse
     return out
 

@@ -538,3 +538,41 @@ def test_absurdly_small_given_voxel_is_refused_naming_the_value():
     with pytest.raises(ConfigError, match="voxel_size 1e-07 is far below"):
         derive_scales(scans, PreprocessConfig(voxel_size=1e-7))
     assert derive_scales(scans, PreprocessConfig(voxel_size=0.05)).voxel == 0.05
+
+
+@pytest.mark.parametrize("scans", [5, 70, 150])
+def test_split_conflicts_in_runs_equals_one_link_at_a_time(scans):
+    """The run-wise split (arrays for what cannot be refused) gives the partial tracks and
+    refusals of the plain greedy union-find, shortest links first; scan sets wider than
+    one 64-bit word included."""
+    from mvreg.pairwise.tracks import _split_conflicts
+
+    rng = np.random.default_rng(scans)
+    n, e = 3000, 9000
+    vert_scan = rng.integers(0, scans, n)
+    vert_scan[0] = scans - 1
+    ea, eb = rng.integers(0, n, e), rng.integers(0, n, e)
+    edge_len = np.round(rng.uniform(0, 1, e), 2)  # ties too
+    label = np.zeros(n, np.int64)
+    bad = np.array([True])
+    parent, sets, refused = list(range(n)), [{int(s)} for s in vert_scan], 0
+
+    def find(a):
+        while parent[a] != a:
+            a = parent[a]
+        return a
+
+    for k in np.argsort(edge_len, kind="stable"):
+        a, b = find(ea[k]), find(eb[k])
+        if a == b:
+            continue
+        if sets[a] & sets[b]:
+            refused += 1
+            continue
+        a, b = min(a, b), max(a, b)
+        parent[b] = a
+        sets[a] |= sets[b]
+    expect = np.array([find(v) for v in range(n)]) + 1
+    got, got_refused = _split_conflicts(label, 1, bad, ea, eb, edge_len, vert_scan)
+    assert got_refused == refused > 0
+    assert np.array_equal(got, expect)

@@ -82,7 +82,10 @@ def scan_model(pre, T_world_scan, members) -> ScanModel | None:
         own.append(np.full(len(pre[k].fine_points), k))
         noi.append(np.full(len(pre[k].fine_points), pre[k].noise))
     p = np.concatenate(pts)
-    return ScanModel(p, np.concatenate(nrm), np.concatenate(own), np.concatenate(noi), cKDTree(p))
+    # Built for one check and queried once or a few times: the unbalanced tree builds in
+    # half the time and answers the same (exact nearest neighbours).
+    tree = cKDTree(p, balanced_tree=False, compact_nodes=False)
+    return ScanModel(p, np.concatenate(nrm), np.concatenate(own), np.concatenate(noi), tree)
 
 
 def match(model: ScanModel, pts, nrm, max_dist, min_cos):

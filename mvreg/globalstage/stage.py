@@ -149,7 +149,7 @@ class GlobalStage:
         progress.stage("verification")
         out, ver, dropped = verify_and_resolve(
             pre, results, out, lambda kept: self.run(ctx, pre, kept, progress, timed),
-            ctx.voxel, ctx.cfg.align, discrete=self.plan.model_search,
+            ctx.voxel, ctx.cfg.align, discrete=self.plan.model_search, executor=ctx.executor,
         )  # fmt: skip
         timed("verify")  # after the last re-solve (whose stages overwrite their timings)
         if self.plan.model_search and out.solution is not None:

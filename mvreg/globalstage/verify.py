@@ -85,6 +85,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from mvreg.config.align import AlignConfig
+from mvreg.executor import single_threaded_blas
 from mvreg.geometry import invert_transform, rotation_from_vector, transform_points
 from mvreg.globalstage.graph import bridge_groups, main_block, on_cycle, one_side
 from mvreg.globalstage.model_search import axis_turns, distant_alternative, self_symmetry
@@ -286,6 +287,7 @@ def verify_scans(
     align_cfg: AlignConfig | None = None,
     agree_voxels: float = 1.0,
     discrete: bool = True,
+    executor=None,
 ) -> dict[int, ScanVerification]:
     """A :class:`ScanVerification` per registered scan (module docstring).
 
@@ -299,6 +301,8 @@ def verify_scans(
         agree_voxels: a pair agrees with the final poses within this many feature voxels.
         discrete: also search each scan against the others for a distant pose that fits
             as well (:mod:`mvreg.globalstage.model_search`).
+        executor: runs the checks of the scans (in-process threads; each check is a pure
+            function of its scan, so the result does not depend on it); default: in turn.
     """
     acfg = align_cfg or AlignConfig()
     scans = sorted(T_world_scan)
@@ -307,17 +311,29 @@ def verify_scans(
     graph = agreeing_graph(pre, results, pair_weight, T_world_scan, voxel, agree_voxels)
     main = main_block(graph)
     cycle = on_cycle(graph) & main
-    out: dict[int, ScanVerification] = {}
-    conflicts: dict[int, list[tuple[int, str]]] = {}
     members = model_members(pre, T_world_scan, 2.0 * voxel)
-    for s in scans:
-        out[s], conflicts[s] = _check_scan(
+
+    def check(s):
+        return _check_scan(
             s, pre, T_world_scan, graph, cycle, main, voxel, acfg, agree_voxels, members[s]
         )
+
+    checked = _map(executor, check, scans)
+    out = {s: c[0] for s, c in zip(scans, checked, strict=True)}
+    conflicts = {s: c[1] for s, c in zip(scans, checked, strict=True)}
     _settle_conflicts(out, conflicts, scans)
     if discrete:
-        search_alternatives(out, graph, pre, T_world_scan, voxel, acfg, results)
+        search_alternatives(out, graph, pre, T_world_scan, voxel, acfg, results, executor)
     return out
+
+
+def _map(executor, fn, items) -> list:
+    """``fn`` over ``items`` in order: on ``executor`` (threads, BLAS on one thread each:
+    the limit is process-wide, so it is set before they start) or in turn."""
+    if executor is None:
+        return list(map(fn, items))
+    with single_threaded_blas():
+        return executor.map(fn, list(items))
 
 
 def _mark(v: ScanVerification, alt, group: str) -> None:
@@ -339,7 +355,9 @@ def _mark_symmetric(out, verified, sym) -> None:
         )
 
 
-def search_alternatives(out, graph, pre, T_world_scan, voxel, acfg, results=()) -> None:
+def search_alternatives(
+    out, graph, pre, T_world_scan, voxel, acfg, results=(), executor=None
+) -> None:
     """First the verified scans as a whole for a symmetry (a motion mapping them onto
     themselves: :func:`mvreg.globalstage.model_search.self_symmetry`; then every one is
     ``undetermined``); else every verified scan, then every group of verified scans that
@@ -360,17 +378,19 @@ def search_alternatives(out, graph, pre, T_world_scan, voxel, acfg, results=()) 
             return
         turns = axis_turns(whole.points, whole.normals)  # a near axis of revolution
     members = model_members(pre, T_world_scan, 2.0 * voxel)
-    for s in scans:
+
+    def search(s):
         others = members[s]
-        if out[s].status != "verified" or len(others) < 2:
-            continue
         model = scan_model(pre, T_world_scan, others)
         # The pose hypotheses of its own pairs too, for cycle-confirmed scans as well: on a
         # near-symmetric shape wrong pairs close cycles (fuze sparse seed 0: a triangle
         # of two wrong pairs put one view 133 deg off, "cycle"-verified).
-        alt = distant_alternative(
+        return distant_alternative(
             [s], pre, T_world_scan, others, model, voxel, acfg, results=results, turns=turns
         )
+
+    todo = [s for s in scans if out[s].status == "verified" and len(members[s]) >= 2]
+    for s, alt in zip(todo, _map(executor, search, todo), strict=True):
         if alt is not None:
             _mark(out[s], alt, "")
     for group in bridge_groups(graph):
@@ -540,6 +560,7 @@ def verify_and_resolve(
     agree_voxels: float = 1.0,
     max_rounds: int = 3,
     discrete: bool = True,
+    executor=None,
 ):
     """Verify, drop the scans that are not verified, re-solve the rest without the pairs
     touching them, and verify again (at most ``max_rounds`` re-solves). With ``discrete``,
@@ -568,11 +589,11 @@ def verify_and_resolve(
         T = {s: T for s, T in solved.T_world_scan.items() if s not in dropped}
         if ver is None:
             ver = verify_scans(
-                pre, results, solved.pair_weight, T, voxel, acfg, agree_voxels, discrete=False
+                pre, results, solved.pair_weight, T, voxel, acfg, agree_voxels, False, executor
             )
         if search:
             graph = agreeing_graph(pre, results, solved.pair_weight, T, voxel, agree_voxels)
-            search_alternatives(ver, graph, pre, T, voxel, acfg, results)
+            search_alternatives(ver, graph, pre, T, voxel, acfg, results, executor)
         return ver, {s: v for s, v in ver.items() if v.status != "verified"}
 
     while True:

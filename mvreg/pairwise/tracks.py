@@ -364,40 +364,92 @@ def _largest_problem(obs: dict, names, m: int):
     return patch_scans, problem_obs, problem
 
 
-def _split_conflicts(label, num_labels, bad, ea, eb, edge_len, vert_scan):
+def _split_conflicts(label, num_labels, bad, ea, eb, edge_len, vert_scan, batches=32):
     """Greedy union-find (shortest links first) inside the conflicting components.
 
     A link is refused when the two partial tracks already share a scan. Returns new labels
     (conflicting components get fresh ids >= num_labels) and the number of refused links.
+
+    The links are taken in ``batches`` runs of increasing length, each settled mostly in
+    arrays with the same result as one link at a time: a link between one partial track
+    or two that share a scan at the start of a run is settled at once (scan sets only
+    grow, so it would be refused whenever met), and the links of a run that join partial
+    tracks into a set seeing every scan at most once all merge (none could be refused);
+    only the links of runs' conflicting sets go one by one.
     """
     label = label.copy()
     verts = np.flatnonzero(bad[label])
+    n = len(verts)
     local = np.full(len(label), -1, np.int64)
-    local[verts] = np.arange(len(verts))
+    local[verts] = np.arange(n)
     edges = np.flatnonzero(bad[label[ea]])
     edges = edges[np.argsort(edge_len[edges], kind="stable")]
-    parent = list(range(len(verts)))
-    scans = [1 << int(s) for s in vert_scan[verts]]
+    U, W = local[ea[edges]], local[eb[edges]]
+    words = int(vert_scan.max()) // 64 + 1 if len(vert_scan) else 1
+    s = vert_scan[verts].astype(np.int64)
+    mask = np.zeros((n, words), np.uint64)  # scan set of each partial track (at its root)
+    mask[np.arange(n), s // 64] = np.left_shift(np.uint64(1), (s % 64).astype(np.uint64))
+    root = np.arange(n)
     refused = 0
-    for u, w in zip(local[ea[edges]].tolist(), local[eb[edges]].tolist(), strict=True):
-        while parent[u] != u:
-            parent[u] = u = parent[parent[u]]
-        while parent[w] != w:
-            parent[w] = w = parent[parent[w]]
-        if u == w:
+    for run in np.array_split(np.arange(len(U)), max(1, min(batches, len(U)))):
+        u, w = root[U[run]], root[W[run]]
+        live = u != w
+        clash = live & np.any(mask[u] & mask[w], axis=1)
+        refused += int(np.count_nonzero(clash))
+        live &= ~clash
+        refused += _settle_run(u[live], w[live], root, mask)
+        while True:  # full path compression
+            nxt = root[root]
+            if np.array_equal(nxt, root):
+                break
+            root = nxt
+    label[verts] = num_labels + root
+    return label, refused
+
+
+def _settle_run(u, w, root, mask) -> int:
+    """Merge along the links (u, w) between roots, in order (see :func:`_split_conflicts`);
+    updates ``root`` and ``mask`` in place; returns the number of refused links."""
+    if not len(u):
+        return 0
+    nodes, inv = np.unique(np.r_[u, w], return_inverse=True)
+    cu, cw = inv[: len(u)], inv[len(u) :]
+    shape = (len(nodes), len(nodes))
+    k, comp = connected_components(sp.coo_matrix((np.ones(len(cu)), (cu, cw)), shape=shape))
+    merged = np.zeros((k, mask.shape[1]), np.uint64)
+    np.bitwise_or.at(merged, comp, mask[nodes])
+    ones = np.bincount(comp, weights=np.bitwise_count(mask[nodes]).sum(axis=1), minlength=k)
+    free = ones == np.bitwise_count(merged).sum(axis=1)  # disjoint scan sets
+    first = np.full(k, np.iinfo(np.int64).max)
+    np.minimum.at(first, comp, nodes)
+    easy = free[comp]
+    root[nodes[easy]] = first[comp[easy]]
+    mask[first[free]] = merged[free]
+    hard = ~free[comp[cu]]
+    if not np.any(hard):
+        return 0
+    parent = {int(r): int(r) for r in nodes[~easy]}
+    scans = {r: int.from_bytes(mask[r].tobytes(), "little") for r in parent}
+    refused = 0
+    for a, b in zip(u[hard].tolist(), w[hard].tolist(), strict=True):
+        while parent[a] != a:
+            parent[a] = a = parent[parent[a]]
+        while parent[b] != b:
+            parent[b] = b = parent[parent[b]]
+        if a == b:
             continue
-        if scans[u] & scans[w]:
+        if scans[a] & scans[b]:
             refused += 1
             continue
-        if u > w:
-            u, w = w, u
-        parent[w] = u
-        scans[u] |= scans[w]
-    roots = np.array(parent, dtype=np.int64)
-    while True:  # full path compression, vectorised
-        nxt = roots[roots]
-        if np.array_equal(nxt, roots):
-            break
-        roots = nxt
-    label[verts] = num_labels + roots
-    return label, refused
+        if a > b:
+            a, b = b, a
+        parent[b] = a
+        scans[a] |= scans[b]
+    for r in parent:
+        q = r
+        while parent[q] != q:
+            q = parent[q]
+        root[r] = q
+        if q == r:
+            mask[r] = np.frombuffer(scans[r].to_bytes(8 * mask.shape[1], "little"), np.uint64)
+    return refused

@@ -147,11 +147,16 @@ class GlobalStage:
         scan that had a pose, the dropped scan indices). A dropped scan gets no pose."""
         out = self.run(ctx, pre, results, progress, timed)
         progress.stage("verification")
+
+        def resolve(kept):
+            timed("verify")  # the round that dropped scans, before the stages run again
+            return self.run(ctx, pre, kept, progress, timed)
+
         out, ver, dropped = verify_and_resolve(
-            pre, results, out, lambda kept: self.run(ctx, pre, kept, progress, timed),
-            ctx.voxel, ctx.cfg.align, discrete=self.plan.model_search, executor=ctx.executor,
+            pre, results, out, resolve, ctx.voxel, ctx.cfg.align,
+            discrete=self.plan.model_search, executor=ctx.executor,
         )  # fmt: skip
-        timed("verify")  # after the last re-solve (whose stages overwrite their timings)
+        timed("verify")
         if self.plan.model_search and out.solution is not None:
             verified = {s: T for s, T in out.T_world_scan.items() if s not in dropped}
             todo = [s for s in range(len(pre)) if s not in verified and _worth_placing(ver.get(s))]

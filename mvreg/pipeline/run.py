@@ -76,9 +76,10 @@ class Run:
         self.close()
 
     def timed(self, name: str) -> None:
-        """Record the time since the previous call (or the start) under ``name``."""
+        """Add the time since the previous call (or the start) to ``name`` (a stage run
+        again, as the global stage after verification drops scans, sums its runs)."""
         now = time.perf_counter()
-        self.timings[name] = now - self._clock
+        self.timings[name] = self.timings.get(name, 0.0) + now - self._clock
         self._clock = now
 
     def finish(self) -> None:

@@ -70,9 +70,7 @@ def test_many_tiny_scans_never_exit_0_with_a_wrong_pose(tmp_path):
     from data_synth import synthesize_scans
 
     scans = tmp_path / "scans"
-    synthesize_scans(
-        "builtin", scans, views=200, points_per_scan=400, seed=3, random_frames=True
-    )
+    synthesize_scans("builtin", scans, views=200, points_per_scan=400, seed=3, random_frames=True)
     r, report = _register(scans, tmp_path / "out", "--seed", "0")
     _never_wrong_at_exit_0(r, report, tmp_path / "out")
 

@@ -53,11 +53,9 @@ class SequenceConfig(BaseModel):
         6.0, gt=0, description="... within this many voxels of the level (feature or fine)"
     )
     view_tests: bool = Field(
-        False,
+        True,
         description="each frame is a view from its sensor (the frame origin): pairs and "
-        "verification test free space (a frame put where another frame saw empty space). "
-        "Off by default: on 200-frame sequences it rejects consecutive pairs and leaves "
-        "61-68 of 200 frames out (docs/benchmarks/sequence.md)",
+        "verification test free space (a frame put where another frame saw empty space)",
     )
     correspondences: Literal["pose", "nearest"] = Field(
         "pose", description="tracks from each pair's pose (pose_tracks) or nearest points"

@@ -52,7 +52,7 @@ from mvreg.config.preprocess import PreprocessConfig
 from mvreg.errors import ConfigError
 from mvreg.executor import Executor, make_executor, map_shared, single_threaded_blas
 from mvreg.pairwise.normals import estimate_normals
-from mvreg.pairwise.view_projection import surrounds
+from mvreg.pairwise.view_projection import one_per_cell, set_viewpoint, surrounds, towards
 from mvreg.scales import Scales
 
 if TYPE_CHECKING:
@@ -84,6 +84,8 @@ class PreprocessedScan:
             estimated: :mod:`mvreg.pairwise.viewpoint`) for a single view; None: the view
             tests use the orthographic approximation along ``view_direction``.
         num_outliers_removed: raw points dropped as isolated (:func:`outlier_mask`).
+        view_points: around a sensor, one raw point per fine cell, strays kept: where it
+            measured (view tests; the stray filter drops a spinning sensor's far samples).
     """
 
     name: str
@@ -101,6 +103,7 @@ class PreprocessedScan:
     view_facing: float = 0.0
     viewpoint: np.ndarray | None = None
     num_outliers_removed: int = 0
+    view_points: np.ndarray | None = None
     _cache: dict = field(default_factory=dict, repr=False, compare=False)
 
     def __repr__(self) -> str:
@@ -362,7 +365,7 @@ def _preprocess(scan: Scan, v: float, cfg: PreprocessConfig) -> PreprocessedScan
     if grow:  # again, from neighbourhoods that span the surface; signs towards the sensor
         estimate_normals(coarse, cfg.normal_radius_voxels * v, cfg.normal_max_neighbours, grow)
         n = np.asarray(coarse.normals)
-        normals = n * np.where(np.einsum("ij,ij->i", n, seen_from - pts) < 0, -1.0, 1.0)[:, None]
+        normals = towards(n, pts, seen_from)
     coarse.normals = o3d.utility.Vector3dVector(normals)
     fpfh = o3d.pipelines.registration.compute_fpfh_feature(
         coarse,
@@ -373,9 +376,7 @@ def _preprocess(scan: Scan, v: float, cfg: PreprocessConfig) -> PreprocessedScan
     fine_v = cfg.fine_voxel_ratio * v
     fine_pts, fine_nrm = _resample(raw, fine_v, cfg, pts, normals, grow=grow)
     if seen_from is not None:
-        fine_nrm *= np.where(np.einsum("ij,ij->i", fine_nrm, seen_from - fine_pts) < 0, -1.0, 1.0)[
-            :, None
-        ]
+        fine_nrm = towards(fine_nrm, fine_pts, seen_from)
     out = PreprocessedScan(
         name=scan.name,
         voxel_size=v,
@@ -392,6 +393,7 @@ def _preprocess(scan: Scan, v: float, cfg: PreprocessConfig) -> PreprocessedScan
     )
     if seen_from is not None:  # a single view seen from there
         set_viewpoint(out, seen_from, normals)
+        out.view_points = one_per_cell(scan.points, fine_v) if grow else None
     else:
         direction, facing = view_direction(normals)
         out.view_facing = facing
@@ -401,18 +403,6 @@ def _preprocess(scan: Scan, v: float, cfg: PreprocessConfig) -> PreprocessedScan
     out._cache["o3d_feature"] = coarse
     out._cache["o3d_fpfh"] = fpfh
     return out
-
-
-def set_viewpoint(out: PreprocessedScan, seen_from: np.ndarray, normals: np.ndarray) -> None:
-    """Make ``out`` a single view seen from ``seen_from`` (its frame): viewpoint, view
-    direction (from the centroid of its fine points towards the sensor; +z for a sensor at
-    that centroid) and the share of ``normals`` facing it."""
-    direction = seen_from - out.fine_points.mean(0)
-    length = np.linalg.norm(direction)  # 0 for a sensor at the centroid of a surround scan
-    tiny = 1e-9 * out.fine_voxel_size
-    direction = direction / length if length > tiny else np.array([0.0, 0.0, 1.0])
-    out.view_facing = float(np.mean(normals @ direction > 0.05))
-    out.view_direction, out.viewpoint = direction, np.asarray(seen_from, float).copy()
 
 
 def _oriented_normals(coarse, pts, file_normals, scan: Scan, keep, v: float, cfg):
@@ -430,7 +420,7 @@ def _oriented_normals(coarse, pts, file_normals, scan: Scan, keep, v: float, cfg
             pass  # degenerate neighbourhood graph: keep PCA signs, the global sign applies
     normals = np.asarray(coarse.normals).copy()
     if seen_from is not None:  # one sign per normal: towards the sensor
-        normals *= np.where(np.einsum("ij,ij->i", normals, seen_from - pts) < 0, -1.0, 1.0)[:, None]
+        normals = towards(normals, pts, seen_from)
     elif axis is not None:  # one sign per normal from the view axis (needs no spanning tree)
         normals *= np.where(normals @ axis < 0, -1.0, 1.0)[:, None]
     if file_normals is not None:

@@ -60,6 +60,32 @@ def _dilated(keys: np.ndarray) -> np.ndarray:
     return np.unique(neighbour_keys(np.unique(keys)).ravel())
 
 
+def one_per_cell(points: np.ndarray, cell: float) -> np.ndarray:
+    """The first finite point of each cell of side ``cell`` (in input order)."""
+    points = points[np.all(np.isfinite(points), axis=1)]
+    _, first = np.unique(np.floor(points / cell).astype(np.int64), axis=0, return_index=True)
+    return points[np.sort(first)]
+
+
+def towards(normals: np.ndarray, points: np.ndarray, sensor: np.ndarray) -> np.ndarray:
+    """``normals`` with each sign turned to face ``sensor`` from its point."""
+    return (
+        normals * np.where(np.einsum("ij,ij->i", normals, sensor - points) < 0, -1.0, 1.0)[:, None]
+    )
+
+
+def set_viewpoint(out, seen_from: np.ndarray, normals: np.ndarray) -> None:
+    """Make ``out`` a single view seen from ``seen_from`` (its frame): viewpoint, view
+    direction (from the centroid of its fine points towards the sensor; +z for a sensor at
+    that centroid) and the share of ``normals`` facing it."""
+    direction = seen_from - out.fine_points.mean(0)
+    length = np.linalg.norm(direction)  # 0 for a sensor at the centroid of a surround scan
+    tiny = 1e-9 * out.fine_voxel_size
+    direction = direction / length if length > tiny else np.array([0.0, 0.0, 1.0])
+    out.view_facing = float(np.mean(normals @ direction > 0.05))
+    out.view_direction, out.viewpoint = direction, np.asarray(seen_from, float).copy()
+
+
 def surrounds(points: np.ndarray, c: np.ndarray, d: np.ndarray | None = None) -> bool:
     """Whether the points lie around the sensor at ``c`` rather than before it: the 99th
     percentile of their angle from the axis ``-d`` (``d``: unit direction from the points

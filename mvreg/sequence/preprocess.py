@@ -17,8 +17,8 @@ from mvreg.pairwise.preprocess import (
     check_voxel_size,
     outlier_mask,
     plane_noise,
-    set_viewpoint,
 )
+from mvreg.pairwise.view_projection import one_per_cell, set_viewpoint
 
 
 def preprocess_range_scan(
@@ -88,6 +88,7 @@ def preprocess_range_scan(
         )
     if seq.view_tests:
         set_viewpoint(out, origin, nrm)
+        out.view_points = one_per_cell(scan.points, fine_v)
     out._cache["o3d_feature"] = coarse
     return out
 

@@ -4,7 +4,7 @@ not fix the pose (a discrete symmetry: a knot turned 120 deg onto itself, a box 
 90 deg, a teapot view turned about its axis); if it fits better, the pose is wrong.
 
 The continuous freedoms (a slide along a cylinder, a turn about a sphere's centre) are
-found by :func:`mvreg.globalstage.verify.degenerate_direction`; this module finds the
+found by :func:`mvreg.globalstage.probes.degenerate_direction`; this module finds the
 discrete ones, which no local probe reaches. Groups matter because scans that agree with
 each other can be wrong together (three teapot views flipped 180 deg as one, linked to the
 rest by one pair): no single scan of the group has a better pose, the group has.

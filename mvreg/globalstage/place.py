@@ -20,7 +20,7 @@ the verified poses ``{scan: T_world_scan}`` and the scans to try, and returns
   (:func:`mvreg.globalstage.verify.free_space_conflicts`, the pairwise limits loosened by
   ``coarse_gate_slack``);
 * no degree of freedom is left open: no continuous one
-  (:func:`mvreg.globalstage.verify.degenerate_direction`) and no second, distant pose that
+  (:func:`mvreg.globalstage.probes.degenerate_direction`) and no second, distant pose that
   fits as well (:func:`mvreg.globalstage.model_search.distant_alternative`).
 
 Placed scans join the model for the next ones (rounds until none is added). Their poses
@@ -41,12 +41,9 @@ from mvreg.globalstage.model_search import (
     pair_poses,
     share_on,
 )
+from mvreg.globalstage.probes import degenerate_direction
 from mvreg.globalstage.scan_model import model_fit, scan_model
-from mvreg.globalstage.verify import (
-    ScanVerification,
-    degenerate_direction,
-    free_space_conflicts,
-)
+from mvreg.globalstage.verify import ScanVerification, free_space_conflicts
 from mvreg.pairwise.hypotheses import distinct_poses, scan_extent
 from mvreg.pairwise.icp import icp_point_to_plane
 

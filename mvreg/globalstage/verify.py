@@ -86,20 +86,16 @@ import numpy as np
 
 from mvreg.config.align import AlignConfig
 from mvreg.executor import single_threaded_blas
-from mvreg.geometry import invert_transform, rotation_from_vector, transform_points
+from mvreg.geometry import invert_transform, transform_points
 from mvreg.globalstage.graph import bridge_groups, main_block, on_cycle, one_side
 from mvreg.globalstage.model_search import axis_turns, distant_alternative, self_symmetry
+from mvreg.globalstage.probes import degenerate_direction, unsettled
 from mvreg.globalstage.robust import pair_disagreements
 from mvreg.globalstage.scan_model import (
-    ScanModel,
-    equally_good,
     model_fit,
     model_members,
-    normal_matrix,
-    overlap_spread,
     scan_model,
 )
-from mvreg.pairwise.icp import icp_point_to_plane
 from mvreg.pairwise.scoring import free_space_violation, unseen_violation
 
 NOTE = (
@@ -161,118 +157,6 @@ def agreeing_graph(
             graph[i].add(j)
             graph[j].add(i)
     return graph
-
-
-# ---------------------------------------------------------------------------- evidence (b)
-
-
-def _describe(e: np.ndarray, c: np.ndarray, L: float) -> str:
-    """Name the motion of the 6-vector ``e`` (rotation part scaled by 1/L)."""
-    w, t = e[:3], e[3:]
-    # A rotation about an axis far from the points moves them almost uniformly; call it a
-    # rotation when its axis passes within about 5 rms radii of them (|w| >= 0.2 |e|).
-    if np.linalg.norm(w) >= 0.2 * np.linalg.norm(e):
-        axis = w / np.linalg.norm(w)
-        # Rotation w/L about c plus translation t: the axis passes where the motion of
-        # points is along it: point = c + (axis x t) * L / |w| (closest approach).
-        through = c + np.cross(w, t) * L / float(np.dot(w, w))
-        return (
-            f"rotation about axis ({axis[0]:.3f}, {axis[1]:.3f}, {axis[2]:.3f}) through "
-            f"({through[0]:.4g}, {through[1]:.4g}, {through[2]:.4g})"
-        )
-    d = t / np.linalg.norm(t)
-    return f"translation along ({d[0]:.3f}, {d[1]:.3f}, {d[2]:.3f})"
-
-
-def _step(e: np.ndarray, distance: float, c: np.ndarray, L: float) -> np.ndarray:
-    """World motion moving points about ``distance`` along the 6-vector ``e``."""
-    e = e / np.linalg.norm(e)
-    S = np.eye(4)
-    S[:3, :3] = rotation_from_vector(e[:3] * distance / L)
-    S[:3, 3] = c - S[:3, :3] @ c + e[3:] * distance
-    return S
-
-
-def degenerate_direction(
-    model: ScanModel,
-    pts: np.ndarray,
-    nrm: np.ndarray,
-    tight: np.ndarray,
-    idx: np.ndarray,
-    noise: float,
-    voxel: float,
-    acfg: AlignConfig,
-    agree_voxels: float = 1.0,
-    probe_voxels: float = 3.0,
-    max_source: int = 3000,
-) -> str | None:
-    """The degree of freedom of the scan (world ``pts``, ``nrm``) against ``model`` that
-    the data do not fix, or None (module docstring)."""
-    if np.count_nonzero(tight) < acfg.min_correspondences:
-        return None
-    H, c, L = normal_matrix(pts[tight], model.normals[idx[tight]])
-    lam, vec = np.linalg.eigh(H)
-    gate = (noise / voxel) ** 2
-    stride = max(1, int(np.ceil(len(pts) / max_source)))
-    src, src_n = pts[::stride], nrm[::stride]
-    base_overlap, base_ratio, base_tight, _, _ = model_fit(model, src, src_n, noise, voxel, acfg)
-    for k in range(6):
-        if lam[k] >= gate:
-            break
-        e = vec[:, k]
-        for sign in (1.0, -1.0):
-            start = _step(sign * e, probe_voxels * voxel, c, L)
-            T = icp_point_to_plane(
-                src, src_n, model.points, model.normals, model.tree, start,
-                (probe_voxels + 1.0) * voxel, 50, acfg.icp_min_normal_cos,
-            )  # fmt: skip
-            moved = float(np.median(np.linalg.norm(transform_points(T, src) - src, axis=1)))
-            if moved <= agree_voxels * voxel:
-                continue  # came back: this direction is fixed by the data
-            q, qn = transform_points(T, src), src_n @ T[:3, :3].T
-            overlap, ratio, tight2, _, _ = model_fit(model, q, qn, noise, voxel, acfg)
-            if equally_good(overlap, ratio, base_overlap, base_ratio, len(src), acfg):
-                return _describe(e, c, L)
-    return None
-
-
-def unsettled(
-    model: ScanModel,
-    pts: np.ndarray,
-    nrm: np.ndarray,
-    noise: float,
-    voxel: float,
-    acfg: AlignConfig,
-    agree_voxels: float = 1.0,
-    max_source: int = 3000,
-) -> str:
-    """Why the scan (world ``pts``, ``nrm``) is not at rest against ``model``, or "": a
-    right pose is a fixed point of point-to-plane ICP against the other scans. When ICP
-    from it moves the scan's points by more than ``agree_voxels`` feature voxels (median)
-    to a clearly better fit (overlap share higher by more than three binomial standard
-    errors, residual no higher), the pose is not the one the data hold (a scan placed by
-    a single weak pair and not refined to the rest)."""
-    stride = max(1, int(np.ceil(len(pts) / max_source)))
-    src, src_n = pts[::stride], nrm[::stride]
-    overlap0, ratio0, _, _, _ = model_fit(model, src, src_n, noise, voxel, acfg)
-    T = icp_point_to_plane(
-        src, src_n, model.points, model.normals, model.tree, np.eye(4),
-        2.0 * voxel, 50, acfg.icp_min_normal_cos,
-    )  # fmt: skip
-    moved = float(np.median(np.linalg.norm(transform_points(T, src) - src, axis=1)))
-    if moved <= agree_voxels * voxel:
-        return ""
-    q, qn = transform_points(T, src), src_n @ T[:3, :3].T
-    overlap, ratio, _, _, _ = model_fit(model, q, qn, noise, voxel, acfg)
-    spread = overlap_spread(overlap0, len(src))
-    if overlap > overlap0 + spread and ratio <= ratio0:
-        angle = np.degrees(np.arccos(np.clip((np.trace(T[:3, :3]) - 1) / 2, -1, 1)))
-        return (
-            f"not at rest against the other scans: ICP moves it {moved / voxel:.1f} voxels "
-            f"({angle:.1f} deg) to a better fit (overlap {overlap:.2f} vs {overlap0:.2f}, "
-            f"residual {ratio:.1f}x vs {ratio0:.1f}x the noise)"
-        )
-    return ""
 
 
 # ---------------------------------------------------------------------------- verify

@@ -10,7 +10,8 @@ import pytest
 from typer.testing import CliRunner
 
 from mvreg.cli import app
-from mvreg.globalstage.verify import normal_matrix, on_cycle
+from mvreg.globalstage.graph import on_cycle
+from mvreg.globalstage.scan_model import normal_matrix
 
 runner = CliRunner()
 

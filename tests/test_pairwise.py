@@ -545,7 +545,7 @@ def test_split_conflicts_in_runs_equals_one_link_at_a_time(scans):
     """The run-wise split (arrays for what cannot be refused) gives the partial tracks and
     refusals of the plain greedy union-find, shortest links first; scan sets wider than
     one 64-bit word included."""
-    from mvreg.pairwise.tracks import split_conflicts
+    from mvreg.pairwise.tracks import split_tracks
 
     rng = np.random.default_rng(scans)
     n, e = 3000, 9000
@@ -573,6 +573,6 @@ def test_split_conflicts_in_runs_equals_one_link_at_a_time(scans):
         parent[b] = a
         sets[a] |= sets[b]
     expect = np.array([find(v) for v in range(n)]) + 1
-    got, got_refused = split_conflicts(label, 1, bad, ea, eb, edge_len, vert_scan)
+    got, got_refused = split_tracks(label, 1, bad, ea, eb, edge_len, vert_scan)
     assert got_refused == refused > 0
     assert np.array_equal(got, expect)

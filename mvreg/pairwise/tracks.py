@@ -282,7 +282,7 @@ def _label_points(links, offsets, m: int, split_conflicts: bool) -> dict:
     num_conflicting = int(bad.sum())
     refused = 0
     if num_conflicting and split_conflicts:
-        label, refused = split_conflicts(label, num_labels, bad, ea, eb, edge_len, vert_scan)
+        label, refused = split_tracks(label, num_labels, bad, ea, eb, edge_len, vert_scan)
     elif num_conflicting:
         label = np.where(bad[label], -1, label)
     return {
@@ -364,7 +364,7 @@ def _largest_problem(obs: dict, names, m: int):
     return patch_scans, problem_obs, problem
 
 
-def split_conflicts(label, num_labels, bad, ea, eb, edge_len, vert_scan, batches=32):
+def split_tracks(label, num_labels, bad, ea, eb, edge_len, vert_scan, batches=32):
     """Greedy union-find (shortest links first) inside the conflicting components.
 
     A link is refused when the two partial tracks already share a scan. Returns new labels
@@ -408,7 +408,7 @@ def split_conflicts(label, num_labels, bad, ea, eb, edge_len, vert_scan, batches
 
 
 def _settle_run(u, w, root, mask) -> int:
-    """Merge along the links (u, w) between roots, in order (see :func:`split_conflicts`);
+    """Merge along the links (u, w) between roots, in order (see :func:`split_tracks`);
     updates ``root`` and ``mask`` in place; returns the number of refused links."""
     if not len(u):
         return 0

@@ -70,7 +70,7 @@ def degenerate_direction(
     max_source: int = 3000,
 ) -> str | None:
     """The degree of freedom of the scan (world ``pts``, ``nrm``) against ``model`` that
-    the data do not fix, or None (module docstring)."""
+    the data do not fix, or None (:mod:`mvreg.globalstage.verify`, "undetermined")."""
     if np.count_nonzero(tight) < acfg.min_correspondences:
         return None
     H, c, L = normal_matrix(pts[tight], model.normals[idx[tight]])

@@ -217,6 +217,10 @@ def _die_once(marker, item):
 
 
 def test_a_lost_workers_task_is_retried(ex, tmp_path):
+    # Both workers up first (an earlier test may have left one restarting): the shared
+    # data is broadcast to the workers present, and the one that dies must not hold the
+    # only copy (a fresh-clone run failed with "cancelled: already forgotten").
+    ex.client.wait_for_workers(2, timeout=120)
     marker = str(tmp_path / "died")
     assert map_shared(ex, _die_once, marker, [1, 2, 3, 4]) == [2, 4, 6, 8]
     assert os.path.exists(marker)

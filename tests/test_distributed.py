@@ -210,16 +210,19 @@ def test_an_interrupt_cancels_the_tasks(ex):
 
 
 def _die_once(marker, item):
-    if not os.path.exists(marker):
-        open(marker, "w").close()
-        os._exit(1)  # the worker process dies mid-task
-    return item * 2
+    # O_EXCL: of two workers running their first tasks at once, exactly one dies (with a
+    # test-then-create both could, and the shared data would be lost with them).
+    try:
+        os.close(os.open(marker, os.O_CREAT | os.O_EXCL | os.O_WRONLY))
+    except FileExistsError:
+        return item * 2
+    os._exit(1)  # the worker process dies mid-task
 
 
 def test_a_lost_workers_task_is_retried(ex, tmp_path):
     # Both workers up first (an earlier test may have left one restarting): the shared
     # data is broadcast to the workers present, and the one that dies must not hold the
-    # only copy (a fresh-clone run failed with "cancelled: already forgotten").
+    # only copy (fresh-clone runs failed with "cancelled: already forgotten").
     ex.client.wait_for_workers(2, timeout=120)
     marker = str(tmp_path / "died")
     assert map_shared(ex, _die_once, marker, [1, 2, 3, 4]) == [2, 4, 6, 8]

@@ -11,6 +11,7 @@ import pickle
 import signal
 import subprocess
 import sys
+import threading
 import time
 from pathlib import Path
 
@@ -207,6 +208,22 @@ def test_an_interrupt_cancels_the_tasks(ex):
         time.sleep(0.1)
     assert not any(ex.client.processing().values())
     assert map_shared(ex, operator.add, 1, [1, 2]) == [2, 3]  # the cluster still works
+
+
+def test_lost_shared_data_is_named_and_sent_again(ex):
+    # Scattered data has no lineage: when it is lost (here: released while tasks read it),
+    # its tasks are cancelled; the error says why, and the next call sends it again
+    # instead of handing out the dead reference.
+    shared = 0.25
+
+    def lose_it():
+        time.sleep(1.0)
+        ex.client.cancel([ex.share(shared)[0]])
+
+    threading.Thread(target=lose_it).start()
+    with pytest.raises(TaskError, match="the data it reads was lost"):
+        map_shared(ex, _sleep, shared, list(range(12)))
+    assert map_shared(ex, _sleep, shared, [1, 2]) == [1, 2]
 
 
 def _die_once(marker, item):

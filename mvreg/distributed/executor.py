@@ -16,8 +16,10 @@ worker or the order tasks ran in; worker processes started by a nanny run BLAS o
 thread (Dask's default environment). So poses are bit-identical to the in-process run.
 
 Failures: a worker lost mid-task has its tasks rescheduled on the others by the scheduler
-(up to ``distributed.scheduler.allowed-failures`` times, default 3); a task that raises is
-not retried (the same seed gives the same error) and comes back as a
+(up to ``distributed.scheduler.allowed-failures`` times, default 3); scattered data has no
+lineage, so when every worker holding it is lost the tasks reading it are cancelled: a
+:class:`~mvreg.errors.TaskError` says so, and the next call scatters the data again; a
+task that raises is not retried (the same seed gives the same error) and comes back as a
 :class:`~mvreg.errors.TaskError` naming the scan or pair; an interrupt (Ctrl-C) while
 waiting cancels every task of the call, and :meth:`DaskExecutor.close` closes the client
 and the local cluster it started (never a cluster it only connected to).
@@ -35,6 +37,11 @@ from typing import Any
 
 from mvreg.errors import ConfigError, MvregError, TaskError
 from mvreg.executor import ThreadExecutor, run_task
+
+LOST_DATA = (
+    "the data it reads was lost (every worker holding it died, or it was released); "
+    "running the command again sends it anew"
+)
 
 SCATTER_ITEM_BYTES = 64 * 1024
 """Items whose pickle is larger than this are scattered once by content key, not sent
@@ -121,9 +128,10 @@ class DaskExecutor:
         """A Future of ``obj`` on the cluster, under its content key; the same content is
         sent once for the executor's life (``broadcast``: to every worker)."""
         key, size = content_key(obj)
-        if key not in self._data:
-            self._data[key] = self.client.scatter({key: obj}, broadcast=broadcast)[key]
-        return self._data[key], size
+        future = self._data.get(key)
+        if future is None or future.status != "finished":  # not sent yet, or lost since
+            future = self._data[key] = self.client.scatter({key: obj}, broadcast=broadcast)[key]
+        return future, size
 
     def map(
         self,
@@ -166,6 +174,8 @@ class DaskExecutor:
 
     def _collect(self, futures: list, labels: list[str], progress) -> list:
         """Results in order; cancels every future on an error or an interrupt."""
+        from distributed.client import FutureCancelledError
+
         out = []
         try:
             for future, label in zip(futures, labels, strict=True):
@@ -173,6 +183,8 @@ class DaskExecutor:
                     out.append(future.result())
                 except MvregError:
                     raise
+                except FutureCancelledError as e:
+                    raise TaskError(label, f"cancelled by the scheduler: {LOST_DATA} ({e})") from e
                 except Exception as e:  # noqa: BLE001 - a lost worker, a pickling error
                     raise TaskError(label, f"{type(e).__name__}: {e}") from e
                 if progress is not None:

@@ -16,6 +16,7 @@ import time
 from pathlib import Path
 
 import cloudpickle
+import dask
 import numpy as np
 import pytest
 from typer.testing import CliRunner
@@ -24,6 +25,7 @@ from data_synth import synthesize_scans
 from mvreg.cli import app
 from mvreg.config import AlignConfig, load_config
 from mvreg.distributed import DaskExecutor
+from mvreg.distributed.executor import KEEP_REPLICAS
 from mvreg.errors import ConfigError, TaskError
 from mvreg.executor import map_shared
 from mvreg.pairwise import align_pairs, derive_scales, preprocess_all, with_noise
@@ -39,13 +41,16 @@ cloudpickle.register_pickle_by_value(sys.modules[__name__])
 
 @pytest.fixture(scope="module")
 def cluster():
-    c = distributed.LocalCluster(
-        n_workers=2,
-        threads_per_worker=1,
-        processes=True,
-        dashboard_address=None,
-        scheduler_kwargs={"dashboard": False, "dashboard_address": "127.0.0.1:0"},
-    )
+    # Configured as DaskExecutor.local configures its clusters (no Active Memory Manager,
+    # which would drop the broadcast copies of the scans while the tests look at them).
+    with dask.config.set(KEEP_REPLICAS):
+        c = distributed.LocalCluster(
+            n_workers=2,
+            threads_per_worker=1,
+            processes=True,
+            dashboard_address=None,
+            scheduler_kwargs={"dashboard": False, "dashboard_address": "127.0.0.1:0"},
+        )
     yield c
     c.close()
 
@@ -117,6 +122,24 @@ def test_pair_tasks_are_small_and_the_scans_are_on_every_worker(preprocessed, ex
     holders = ex.client.who_has()
     shared = [k for k in holders if str(k).startswith("mvreg-data")]
     assert shared and max(len(holders[k]) for k in shared) == 2  # broadcast to both workers
+
+
+def test_a_started_cluster_keeps_the_broadcast_copies(preprocessed):
+    # The Active Memory Manager would drop one of the two copies within seconds (every 2 s
+    # by default): the copies must still be on both workers well after the call.
+    pre, scales = preprocessed
+    with DaskExecutor.local(2) as own:
+        assert not own.client.run_on_scheduler(_amm_running)
+        align_pairs(pre, [(0, 1), (1, 2)], AlignConfig(), 0, executor=own, scales=scales)
+        time.sleep(5.0)
+        holders = own.client.who_has()
+        shared = [k for k in holders if str(k).startswith("mvreg-data")]
+        assert shared and min(len(holders[k]) for k in shared) == 2
+
+
+def _amm_running(dask_scheduler=None):
+    amm = dask_scheduler.extensions.get("amm")
+    return bool(amm is not None and amm.running)
 
 
 def test_a_pair_task_error_names_the_pair(preprocessed, ex):

@@ -43,6 +43,12 @@ LOST_DATA = (
     "running the command again sends it anew"
 )
 
+KEEP_REPLICAS = {"distributed.scheduler.active-memory-manager.start": False}
+"""Dask configuration of the local clusters started here: no Active Memory Manager. Its
+default policy (ReduceReplicas, every 2 s) drops the copies of the broadcast scans that no
+waiting task needs, so the workers fetch them from each other again, and a worker that dies
+may take the last copy with it (scattered data has no lineage)."""
+
 SCATTER_ITEM_BYTES = 64 * 1024
 """Items whose pickle is larger than this are scattered once by content key, not sent
 with their task."""
@@ -82,7 +88,9 @@ class DaskExecutor:
 
     @classmethod
     def local(cls, workers: int, threads_per_worker: int = 1) -> DaskExecutor:
-        """Start a ``LocalCluster`` of ``workers`` worker processes (no dashboard)."""
+        """Start a ``LocalCluster`` of ``workers`` worker processes (no dashboard, no
+        Active Memory Manager: :data:`KEEP_REPLICAS`)."""
+        import dask
         from distributed import Client, LocalCluster
 
         from mvreg.distributed.plugins import IgnoreInterrupt
@@ -91,15 +99,16 @@ class DaskExecutor:
             raise ConfigError(f"workers must be >= 1, got {workers}")
         cluster = None
         try:
-            cluster = LocalCluster(
-                n_workers=workers,
-                threads_per_worker=threads_per_worker,
-                processes=True,
-                dashboard_address=None,
-                # no dashboard; the scheduler's HTTP routes on a free local port, not 8787
-                scheduler_kwargs={"dashboard": False, "dashboard_address": "127.0.0.1:0"},
-                silence_logs=logging.CRITICAL,  # shutdown chatter; task errors come back
-            )
+            with dask.config.set(KEEP_REPLICAS):
+                cluster = LocalCluster(
+                    n_workers=workers,
+                    threads_per_worker=threads_per_worker,
+                    processes=True,
+                    dashboard_address=None,
+                    # no dashboard; the scheduler's HTTP routes on a free local port
+                    scheduler_kwargs={"dashboard": False, "dashboard_address": "127.0.0.1:0"},
+                    silence_logs=logging.CRITICAL,  # shutdown chatter; task errors come back
+                )
             client = Client(cluster)
             client.register_plugin(IgnoreInterrupt(), name="mvreg-ignore-sigint")
         except BaseException:

@@ -157,7 +157,10 @@ def _few_bunny_scans(tmp_path: Path, names=("bun000.ply", "bun045.ply", "bun315.
 
 def _register_synthetic_within_target(tmp_path: Path, mesh: str, noise: float):
     """data_synth scans of a shared mesh (12 views, seed 0, random frames), registered
-    with defaults: every scan registered and within the issue's 0.5 deg / 0.5% target."""
+    with defaults: every scan registered and within the issue's 0.5 deg / 0.5% target
+    (translation at the scan centroids, as issue 13 and the generalization benchmark
+    measure it: at the random frames' origins, far from the object, a rotation error's
+    lever arm adds to it)."""
     from data_synth import synthesize_scans
     from mvreg.pipeline import register
 
@@ -168,7 +171,7 @@ def _register_synthetic_within_target(tmp_path: Path, mesh: str, noise: float):
     assert not reg.unregistered
     e = reg.truth_errors
     assert e["rotation_deg_max"] < 0.5, e
-    assert e["translation_max"] < 0.005 * synth.object_diagonal, e
+    assert e["translation_at_centroid_max"] < 0.005 * synth.object_diagonal, e
     return reg
 
 

@@ -186,9 +186,12 @@ def refine_rounds(
             if pairs is None
             else [(i, j) for i, j in pairs if i in sol.T_world_scan and j in sol.T_world_scan]
         )
+        round_cfg = cfg
+        if k == cfg.rounds - 1 and k > 0:
+            round_cfg = cfg.model_copy(update={"correspondences": cfg.last_round_correspondences})
         match = partial(
             match_pair, sol=sol, points=points, normals=normals, trees=trees,
-            max_dist=dist_v * voxel, cfg=cfg, tc=tracks_cfg,
+            max_dist=dist_v * voxel, cfg=round_cfg, tc=tracks_cfg,
         )  # fmt: skip
         matched = [m for m in executor.map(match, candidates) if m is not None]
         if not matched:

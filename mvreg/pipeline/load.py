@@ -13,6 +13,7 @@ later stages lose digits far from the origin (a normal's covariance subtracts sq
 
 from __future__ import annotations
 
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field, replace
 from pathlib import Path
 
@@ -21,6 +22,9 @@ import numpy as np
 from mvreg.errors import InputError
 from mvreg.io.loaders import Scan, TooFewPointsError, display_path, load_scan_file, scan_folder
 from mvreg.io.poses import pose_with_offset, read_poses_json
+
+LOAD_THREADS = 2
+"""Files read at a time (at most this many whole scans in memory beyond those kept)."""
 
 
 @dataclass
@@ -151,14 +155,25 @@ def _load_folder(folder: Path, min_points, max_points, truth, prog) -> Loaded:
     if not listing.files:
         raise InputError(f"{folder}: no scan files found")
     prog.stage("load", len(listing.files))
-    scans, rejected = [], []
-    for f in listing.files:
-        for scan in load_scan_file(f, min_points, max_points, rejected=rejected):
+
+    def load(f):  # (scans, rejected) of one file
+        out, left = [], []
+        for scan in load_scan_file(f, min_points, max_points, rejected=left):
             try:
-                scans.append(drop_far_strays(scan, min_points))
+                out.append(drop_far_strays(scan, min_points))
             except TooFewPointsError as e:
-                rejected.append(e)
-        prog.advance()
+                left.append(e)
+        return out, left
+
+    scans, rejected = [], []
+    # Two files at a time (parsing and checking release the GIL for much of their time);
+    # results taken in file order, so the scans' order and the first error are as read in
+    # turn.
+    with ThreadPoolExecutor(LOAD_THREADS) as pool:
+        for out, left in pool.map(load, listing.files):
+            scans += out
+            rejected += left
+            prog.advance()
     if truth is None and (folder / "ground_truth.json").exists():
         truth = read_poses_json(folder / "ground_truth.json")
     left_out = [

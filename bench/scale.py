@@ -76,14 +76,15 @@ def _mvreg(args: list[str]) -> subprocess.CompletedProcess:
     )
 
 
-def register(folder: Path, out: Path, extra: list[str]) -> dict:
-    """One `mvreg register` process: wall time, peak memory and its report's figures."""
+def register(folder: Path, out: Path, extra: list[str], rrd: bool = False) -> dict:
+    """One `mvreg register` process (``--no-rrd`` unless ``rrd``): wall time, peak memory
+    and its report's figures."""
     env = dict(os.environ, OPENBLAS_NUM_THREADS=os.environ.get("OPENBLAS_NUM_THREADS", "1"))
     cmd = [sys.executable, "-m", "mvreg.cli", "register", str(folder), "--out", str(out)]
     load = os.getloadavg()[0]
     t0 = time.perf_counter()
     proc = subprocess.Popen(
-        [*cmd, "--no-rrd", "--force", *extra],
+        [*cmd, *([] if rrd else ["--no-rrd"]), "--force", *extra],
         env=env,
         stdout=subprocess.DEVNULL,
         stderr=subprocess.PIPE,

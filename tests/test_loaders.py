@@ -462,3 +462,24 @@ def test_corrupt_las_and_e57_are_named(tmp_path, suffix):
     with pytest.raises(ScanFileError) as info:
         load_scan(path)
     assert info.value.path == str(path)
+
+
+def test_the_load_stage_reads_two_at_a_time_in_file_order(tmp_path):
+    """The pipeline's load stage reads files on threads: the scans come in the folder's
+    order, and of two bad files the first in that order is the one named."""
+    from mvreg.pipeline.load import LOAD_THREADS, load_source
+    from mvreg.pipeline.run import NoProgress
+
+    assert LOAD_THREADS >= 2
+    rng = np.random.default_rng(0)
+    sizes = [300, 200, 400, 250, 350]
+    for k, n in enumerate(sizes):
+        np.save(tmp_path / f"s{k}.npy", rng.normal(size=(n, 3)))
+    loaded = load_source(tmp_path, None, 100, None, None, NoProgress())
+    assert [s.name for s in loaded.scans] == [f"s{k}.npy" for k in range(5)]
+    assert [len(s.points) for s in loaded.scans] == sizes
+    (tmp_path / "s1.npy").write_bytes(b"not numpy")
+    (tmp_path / "s3.npy").write_bytes(b"")
+    with pytest.raises(ScanFileError) as info:
+        load_source(tmp_path, None, 100, None, None, NoProgress())
+    assert info.value.path == str(tmp_path / "s1.npy")

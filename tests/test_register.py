@@ -293,3 +293,20 @@ def test_a_far_stray_point_is_dropped_at_load():
     assert out.num_dropped_far == 1 and np.array_equal(out.points, pts)
     clean = Scan(name="c", path=Path("c.npy"), points=pts)
     assert drop_far_strays(clean, 100) is clean
+
+
+def test_keyword_overrides_apply_on_top_of_a_given_config(tmp_path):
+    """register(config=cfg, seed=3) runs with cfg's settings and seed 3 (the keywords were
+    silently dropped when a config was given)."""
+    from mvreg.config import RegisterConfig, load_config
+    from mvreg.errors import ConfigError
+    from mvreg.pipeline import register
+
+    cfg = RegisterConfig()
+    cfg.refine.last_round_correspondences = "pairwise-icp"
+    reg = register(_few_bunny_scans(tmp_path), config=cfg, seed=3, **{"refine.rounds": 2})
+    assert reg.config.seed == 3 and reg.config.refine.rounds == 2
+    assert reg.config.refine.last_round_correspondences == "pairwise-icp"
+    assert cfg.seed == 0 and cfg.refine.rounds == 3  # the caller's object is not changed
+    with pytest.raises(ConfigError, match="not both"):
+        load_config(tmp_path / "c.json", base=cfg)

@@ -92,13 +92,18 @@ class RegisterConfig(BaseModel):
         return scheduler
 
 
-def load_config(path: str | Path | None = None, **overrides) -> RegisterConfig:
-    """Defaults, then the file (JSON, or YAML when PyYAML is installed), then overrides.
+def load_config(
+    path: str | Path | None = None, base: RegisterConfig | None = None, **overrides
+) -> RegisterConfig:
+    """Defaults (or ``base``), then the file (JSON, or YAML when PyYAML is installed), then
+    overrides.
 
     ``overrides`` use dotted keys for nested fields: ``{"solve.solver": "gpm",
     "preprocess.voxel_size": 0.002, "seed": 3}``; None values are ignored.
     """
-    data: dict = {}
+    if base is not None and path is not None:
+        raise ConfigError("give a base configuration or a config file, not both")
+    data: dict = base.model_dump() if base is not None else {}
     if path is not None:
         path = Path(path)
         try:

@@ -41,8 +41,8 @@ def register(
 
     Args:
         source: folder of scan files, or point arrays in their own frames.
-        config: a RegisterConfig; else defaults with ``overrides`` (dotted keys, e.g.
-            ``**{"solve.solver": "gpm"}``, or plain ``seed=1``).
+        config: a RegisterConfig (default: the defaults); ``overrides`` apply on top of
+            it (dotted keys, e.g. ``**{"solve.solver": "gpm"}``, or plain ``seed=1``).
         names: names of the arrays when ``source`` is a list.
         recorder: a mvreg.viz Recorder (default: none).
         progress: an object with stage(name, total) / advance(n) / done() (CLI: rich bars).
@@ -51,7 +51,8 @@ def register(
         pair_hook: optional ``f(pre, results) -> results`` applied after pairwise
             alignment (benchmarks and tests use it to inject wrong pairs).
     """
-    cfg = config if config is not None else load_config(**overrides)
+    # Overrides apply on top of a given configuration too (``config=cfg, seed=1``).
+    cfg = config if config is not None and not overrides else load_config(base=config, **overrides)
     with Run(cfg, recorder, progress) as run:
         return run_pipeline(run, UnorderedMode(pair_hook), source, names, truth)
 

@@ -150,8 +150,9 @@ def register_sequence(
     Args:
         source: folder of scan files (natural order), or (N_k, 3) point arrays in their
             sensor frames, in time order.
-        config: a RegisterConfig (its ``sequence`` section sets the sequence stages); else
-            defaults with ``overrides`` (dotted keys, e.g. ``**{"sequence.skip_pairs": 2}``).
+        config: a RegisterConfig (its ``sequence`` section sets the sequence stages;
+            default: the defaults); ``overrides`` apply on top of it (dotted keys, e.g.
+            ``**{"sequence.skip_pairs": 2}``).
         sequence: a SequenceConfig replacing the config's ``sequence`` section.
         names: names of the arrays when ``source`` is a list.
         timestamps: one time per scan (overrides ``timestamps.txt`` and file names).
@@ -165,7 +166,8 @@ def register_sequence(
     """
     if config is not None and overrides:
         raise ConfigError(f"give either a config or overrides, not both ({', '.join(overrides)})")
-    cfg = config if config is not None else load_config(**overrides)
+    # Overrides apply on top of a given configuration too (``config=cfg, seed=1``).
+    cfg = config if config is not None and not overrides else load_config(base=config, **overrides)
     if sequence is not None:
         cfg = cfg.model_copy(update={"sequence": sequence})
     folder = Path(source) if isinstance(source, (str, Path)) else None

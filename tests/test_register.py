@@ -303,10 +303,10 @@ def test_keyword_overrides_apply_on_top_of_a_given_config(tmp_path):
     from mvreg.pipeline import register
 
     cfg = RegisterConfig()
-    cfg.refine.last_round_correspondences = "pairwise-icp"
+    cfg.refine.last_round_correspondences = "nearest"
     reg = register(_few_bunny_scans(tmp_path), config=cfg, seed=3, **{"refine.rounds": 2})
     assert reg.config.seed == 3 and reg.config.refine.rounds == 2
-    assert reg.config.refine.last_round_correspondences == "pairwise-icp"
+    assert reg.config.refine.last_round_correspondences == "nearest"
     assert cfg.seed == 0 and cfg.refine.rounds == 3  # the caller's object is not changed
     with pytest.raises(ConfigError, match="not both"):
         load_config(tmp_path / "c.json", base=cfg)

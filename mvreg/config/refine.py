@@ -30,12 +30,20 @@ class RefineConfig(BaseModel):
         "ICP from its relative pose under the global poses and matched (mutual nearest "
         "neighbours) under that pose; nearest: matched under the global poses",
     )
+    icp_points: int = Field(
+        3000, ge=10, description="pairwise-icp: source points of each pair's ICP (evenly strided)"
+    )
+    last_round_icp_points: int = Field(
+        1000,
+        ge=10,
+        description="the same in the last round (the densest level, after the others have "
+        "moved the poses along the planes): 80 builtin scans, refinement 35.3 -> 27.6 s at "
+        "the same accuracy (docs/design/globalstage.md)",
+    )
     last_round_correspondences: Literal["pairwise-icp", "nearest"] = Field(
-        "nearest",
-        description="the last round's matching (after the others have moved the poses "
-        "along the planes within its distance): nearest saves the pair ICP on the densest "
-        "level (80 builtin scans: refinement 35 -> 25 s, same accuracy; "
-        "docs/design/globalstage.md)",
+        "pairwise-icp",
+        description="the last round's matching; nearest (no pair ICP) is faster still but "
+        "lets sparse scans of planar parts slide (featuretype sparse: 1.69 -> 2.51 deg)",
     )
     dense_voxel_ratio: float | None = Field(
         0.25,

@@ -125,7 +125,7 @@ def match_pair(pair, sol, points, normals, trees, max_dist, cfg: RefineConfig, t
     if cfg.correspondences == "pairwise-icp":
         T_match = pair_icp(
             points[i], normals[i], trees[i], points[j], normals[j], T_i_j, max_dist,
-            tc.min_normal_cos,
+            tc.min_normal_cos, max_source=cfg.icp_points,
         )  # fmt: skip
     T_match = T_i_j if T_match is None else T_match
     idx_i, idx_j = mutual_correspondences(
@@ -188,7 +188,12 @@ def refine_rounds(
         )
         round_cfg = cfg
         if k == cfg.rounds - 1 and k > 0:
-            round_cfg = cfg.model_copy(update={"correspondences": cfg.last_round_correspondences})
+            round_cfg = cfg.model_copy(
+                update={
+                    "correspondences": cfg.last_round_correspondences,
+                    "icp_points": cfg.last_round_icp_points,
+                }
+            )
         match = partial(
             match_pair, sol=sol, points=points, normals=normals, trees=trees,
             max_dist=dist_v * voxel, cfg=round_cfg, tc=tracks_cfg,

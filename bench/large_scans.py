@@ -25,6 +25,7 @@ Writes docs/benchmarks/large_scans.md and large_scans.json.
 from __future__ import annotations
 
 import argparse
+import functools
 import json
 import os
 import statistics
@@ -40,25 +41,33 @@ from bench.scale import register, synth_builtin
 VIEWS, POINTS = 15, 40000
 
 
-def _errors(T_named: dict, folder: Path) -> dict:
-    """Gauge-free errors of the registered scans: rotation (deg), translation at each
-    scan's centroid (% of the object diagonal)."""
+@functools.cache
+def _truth(folder: Path) -> tuple[dict, dict, list, float]:
+    """(truth poses, scan centroids, names in order, object diagonal) of the data, read once."""
     from mvreg.io.loaders import load_scan
     from mvreg.io.poses import read_poses_json
-    from mvreg.metrics import pose_errors
 
     truth = read_poses_json(folder / "ground_truth.json")
     names = sorted(truth)
     pts = {n: load_scan(folder / n).points for n in names}
     world = np.concatenate([p @ truth[n][:3, :3].T + truth[n][:3, 3] for n, p in pts.items()])
     diag = float(np.linalg.norm(world.max(0) - world.min(0)))  # the scans cover the object
+    return truth, {n: p.mean(0) for n, p in pts.items()}, names, diag
+
+
+def _errors(T_named: dict, folder: Path) -> dict:
+    """Gauge-free errors of the registered scans: rotation (deg), translation at each
+    scan's centroid (% of the object diagonal)."""
+    from mvreg.metrics import pose_errors
+
+    truth, centroid, names, diag = _truth(folder)
     got = [n for n in names if n in T_named]
     out = {"registered": len(got), "scans": len(names), "diagonal": diag}
     if len(got) >= 2:
         e = pose_errors(
             np.stack([T_named[n] for n in got]),
             np.stack([truth[n] for n in got]),
-            at=np.stack([pts[n].mean(0) for n in got]),
+            at=np.stack([centroid[n] for n in got]),
         )
         out |= {
             "rot_max": float(np.max(e.rotation_deg)),

@@ -26,6 +26,12 @@ class AlignConfig(BaseModel):
     ransac_edge_length_ratio: float = Field(0.9, gt=0, lt=1)
     ransac_normal_angle_deg: float = Field(30.0, gt=0, le=180)
     ransac_validate_top: int = Field(8, ge=1, description="hypotheses re-ranked on the scans")
+    ransac_guided: bool = Field(
+        False,
+        description="pairwise RANSAC: when plain draws stop short of the confidence, as many "
+        "again drawn among pairwise-consistent matches (numpy backend; placing leftover "
+        "scans on the model always does)",
+    )
     ransac_hypotheses_tried: int = Field(
         8, ge=1, description="distinct RANSAC hypotheses verified (ICP + acceptance rule)"
     )

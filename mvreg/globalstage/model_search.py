@@ -93,13 +93,14 @@ def feature_model(pre, T_world_scan: dict[int, np.ndarray], members) -> FeatureM
 
 def motion_candidates(
     target: FeatureModel, source: FeatureModel, acfg: AlignConfig, voxel: float, seed: int,
-    far: float, max_matches: int = 1500, rounds: int = 1,
+    far: float, max_matches: int = 1500, rounds: int = 1, guided: bool = False,
 ) -> list[np.ndarray]:  # fmt: skip
     """Distinct RANSAC world motions of ``source`` onto ``target``, best first, drawn only
     from the descriptor matches that the current placement (the identity) leaves more
     than ``far`` apart; with ``rounds`` > 1, each further round also leaves out the matches
     the motions found so far explain (a near-symmetric shape has a family of poses that
-    would otherwise fill every slot)."""
+    would otherwise fill every slot). ``guided``: RANSAC also draws among pairwise-consistent
+    matches (:mod:`mvreg.pairwise.guided`)."""
     found: list[np.ndarray] = [np.eye(4)]
 
     def keep(src, dst):  # matches no motion found so far explains, at most max_matches
@@ -119,7 +120,7 @@ def motion_candidates(
     )
     out: list[np.ndarray] = []
     for r in range(rounds):
-        _, stats = ransac_numpy(target, source, acfg, seed + r, basis, voxel, keep)
+        _, stats = ransac_numpy(target, source, acfg, seed + r, basis, voxel, keep, guided=guided)
         new = list(stats.get("candidates", []))
         if not new:
             break
@@ -398,7 +399,9 @@ def self_symmetry(
         matches = _self_matches(union, acfg, apart, max_points)
         tried: list[tuple[np.ndarray, bool]] = []  # (motion, refine it)
         if len(matches[0]) >= 3:
-            _, stats = ransac_numpy(union, union, acfg, 0, None, voxel, matches=matches)
+            _, stats = ransac_numpy(
+                union, union, acfg, 0, None, voxel, matches=matches, guided=False
+            )
             found = [M for M in stats.get("candidates", []) if _moved(M, union.points) > far]
             shares = [share_on(union, union, M, acfg, voxel) for M in found]
             tried += [(found[k], True) for k in np.argsort(-np.asarray(shares), kind="stable")]

@@ -11,11 +11,12 @@ the verified poses ``{scan: T_world_scan}`` and the scans to try, and returns
 ``{scan: (T_world_scan, ScanVerification)}`` of the scans it placed, each with evidence
 ``"model search"``. A placement is kept when, against the union of the verified scans:
 
-* RANSAC over descriptor matches (:func:`mvreg.globalstage.model_search.motion_candidates`)
-  and point-to-plane ICP on the fine level bring it to a pose whose overlap share and
-  residual pass the pairwise acceptance rule (``AlignConfig.min_overlap_ratio``,
-  ``max_residual_ratio`` x the noise), with tight support from at least two verified
-  scans (so not a single partner);
+* RANSAC over descriptor matches (:func:`mvreg.globalstage.model_search.motion_candidates`,
+  with the draws among pairwise-consistent matches, :mod:`mvreg.pairwise.guided`: on the
+  model of many scans few mutual matches are right) and point-to-plane ICP on the fine
+  level bring it to a pose whose overlap share and residual pass the pairwise acceptance
+  rule (``AlignConfig.min_overlap_ratio``, ``max_residual_ratio`` x the noise), with tight
+  support from at least two verified scans (so not a single partner);
 * neither free-space test conflicts with a supporting scan
   (:func:`mvreg.globalstage.verify.free_space_conflicts`, the pairwise limits loosened by
   ``coarse_gate_slack``);
@@ -98,7 +99,7 @@ def _place_one(s, pre, T_all, models, voxel, acfg, results, max_tries):
         return None
     # No pose to stay away from: far = -1 keeps every match.
     candidates = pair_poses(s, results, T_all)
-    candidates += motion_candidates(target, source, acfg, voxel, seed=s, far=-1.0)
+    candidates += motion_candidates(target, source, acfg, voxel, seed=s, far=-1.0, guided=True)
     if not candidates:
         return None
     shares = [share_on(target, source, C, acfg, voxel) for C in candidates]

@@ -13,7 +13,11 @@ NumPy backend (default): triples of matches drawn with a seeded
 ``ransac_edge_length_ratio``) and its normals (angle <= ``ransac_normal_angle_deg``);
 hypotheses are ranked by how many matches they explain within
 ``ransac_distance_voxels * voxel``, the number of draws adapts to the best inlier ratio
-(``ransac_confidence``), and the best distinct ones (near-duplicates removed) are refitted
+(``ransac_confidence``); where the draws reach ``ransac_max_iterations`` short of that
+confidence (few right matches among many), as many again are drawn among matches that
+agree pairwise (:mod:`mvreg.pairwise.guided`; ``guided``, by default
+``ransac_guided``). The best distinct
+hypotheses (near-duplicates removed) are refitted
 to their inliers and re-ranked by how much of the whole scan j they put onto scan i.
 Deterministic for a seed. Open3D backend: Open3D's
 ``registration_ransac_based_on_feature_matching``, run on one thread (its threads share
@@ -29,10 +33,14 @@ import numpy as np
 from mvreg.config.align import AlignConfig
 from mvreg.geometry import transform_points
 from mvreg.pairwise.features import FeatureBasis, feature_matches
+from mvreg.pairwise.guided import compatibility, draw_triples
 from mvreg.pairwise.icp import feature_level_tree
 from mvreg.pairwise.preprocess import PreprocessedScan
 
 RansacBackend = Callable[..., tuple[np.ndarray, dict]]
+
+# Guided draws (:mod:`.guided`) build their compatibility graph on at most this many matches.
+GUIDED_MAX_MATCHES = 1500
 
 
 def kabsch(src: np.ndarray, dst: np.ndarray) -> np.ndarray:
@@ -111,13 +119,18 @@ def ransac_numpy(
     voxel: float,
     keep_matches: Callable[[np.ndarray, np.ndarray], np.ndarray] | None = None,
     matches: tuple[np.ndarray, np.ndarray] | None = None,
+    guided: bool | None = None,
 ) -> tuple[np.ndarray, dict]:
     """Best T_i_j from feature matches; (T, stats). Identity with stats["ok"]=False if none.
 
     ``keep_matches``: optional filter of the matches, (points of j, points of i) -> bool
     mask (e.g. to drop the matches a known pose explains and look for another one).
     ``matches``: (idx_i, idx_j) to use instead of the mutual descriptor matches.
+    ``guided``: when the plain draws stop at ``ransac_max_iterations`` short of the
+    confidence, draw as many again among pairwise-consistent matches (:mod:`.guided`);
+    None: ``cfg.ransac_guided``.
     """
+    guided = cfg.ransac_guided if guided is None else guided
     if matches is not None:
         idx_i, idx_j = matches
     else:
@@ -132,7 +145,9 @@ def ransac_numpy(
         return np.eye(4), stats
     src, dst = pre_j.points[idx_j], pre_i.points[idx_i]
     normals = (pre_j.normals[idx_j], pre_i.normals[idx_i])
-    counts, hypotheses, stats["hypotheses_drawn"] = _draw(src, dst, normals, cfg, seed, voxel)
+    counts, hypotheses, stats["hypotheses_drawn"] = _draw(
+        src, dst, normals, cfg, seed, voxel, guided
+    )
     if len(hypotheses) == 0 or counts[0] < 3:
         return np.eye(4), stats
     kept, fits = _rerank(hypotheses, src, dst, pre_i, pre_j, cfg, voxel)
@@ -145,57 +160,86 @@ def ransac_numpy(
     return best, stats
 
 
-def _draw(src, dst, normals, cfg: AlignConfig, seed: int, voxel: float):
-    """Adaptive RANSAC over triples of matches (src[k] -> dst[k]).
+def _draw(src, dst, normals, cfg: AlignConfig, seed: int, voxel: float, guided: bool = False):
+    """Adaptive RANSAC over triples of matches (src[k] -> dst[k]); with ``guided``, as
+    many triples again drawn among pairwise-consistent matches (:mod:`.guided`).
 
     Returns the inlier counts (descending) and (K, 4, 4) hypotheses of the best
     ``8 * ransac_validate_top`` draws, and the number of triples drawn.
     """
-    src_n, dst_n = normals
     m = len(src)
+    pool = _Pool(src, dst, normals, cfg, voxel)
     rng = np.random.default_rng(seed)
-    dist2 = (cfg.ransac_distance_voxels * voxel) ** 2
-    cos_n = np.cos(np.radians(cfg.ransac_normal_angle_deg))
     log_fail = np.log(1.0 - cfg.ransac_confidence)
     needed, drawn, batch = cfg.ransac_max_iterations, 0, 256
-    best_counts = np.zeros(0, np.int64)
-    best_T = np.zeros((0, 4, 4))
-    pool = 8 * cfg.ransac_validate_top  # near-duplicates are removed at the end
     while drawn < needed:
         draw = rng.integers(0, m, size=(batch, 3))
         drawn += batch
         draw = draw[
             (draw[:, 0] != draw[:, 1]) & (draw[:, 1] != draw[:, 2]) & (draw[:, 0] != draw[:, 2])
         ]
-        ls, ld = edge_lengths(src[draw]), edge_lengths(dst[draw])
-        ok = np.all(
-            (np.minimum(ls, ld) >= cfg.ransac_edge_length_ratio * np.maximum(ls, ld))
-            & (ls > voxel),
-            axis=1,
-        )
-        draw = draw[ok]
-        if len(draw) == 0:
-            continue
-        hyp = triangle_transforms(src[draw], dst[draw])
-        finite = np.all(np.isfinite(hyp), axis=(1, 2))
-        hyp, draw = hyp[finite], draw[finite]
-        rot_n = np.einsum("bij,bkj->bki", hyp[:, :3, :3], src_n[draw])
-        ok = np.all(np.einsum("bki,bki->bk", rot_n, dst_n[draw]) >= cos_n, axis=1)
-        hyp = hyp[ok]
-        if len(hyp) == 0:
-            continue
-        moved = np.einsum("bij,kj->bki", hyp[:, :3, :3], src) + hyp[:, None, :3, 3]
-        counts = np.count_nonzero(np.sum((moved - dst) ** 2, axis=2) <= dist2, axis=1)
-        best_counts = np.concatenate([best_counts, counts])
-        best_T = np.concatenate([best_T, hyp])
-        keep = np.argsort(-best_counts, kind="stable")[:pool]
-        best_counts, best_T = best_counts[keep], best_T[keep]
-        w = best_counts[0] / m
+        w = pool.add(draw)
         if w >= 1.0:
             break
         if w > 0:
             needed = min(needed, int(np.ceil(log_fail / np.log1p(-(w**3)))))
-    return best_counts, best_T, int(drawn)
+    if guided and drawn >= cfg.ransac_max_iterations and pool.inlier_share() < 1.0:
+        # The plain draws stopped at the cap, short of the confidence asked for.
+        sub = np.arange(m)
+        if m > GUIDED_MAX_MATCHES:  # the compatibility test costs m^2: an even subset
+            sub = np.linspace(0, m - 1, GUIDED_MAX_MATCHES).astype(np.int64)
+        dist = cfg.ransac_distance_voxels * voxel
+        indptr, indices = compatibility(
+            src[sub], dst[sub], normals[0][sub], normals[1][sub], dist,
+            cfg.ransac_normal_angle_deg, voxel,
+        )  # fmt: skip
+        g_rng = np.random.default_rng([seed, 1])
+        for _ in range(0, cfg.ransac_max_iterations, batch):
+            pool.add(sub[draw_triples(g_rng, indptr, indices, batch)])
+            drawn += batch
+    return pool.counts, pool.T, int(drawn)
+
+
+class _Pool:
+    """The best hypotheses of the triples scored so far (``8 * ransac_validate_top``)."""
+
+    def __init__(self, src, dst, normals, cfg: AlignConfig, voxel: float):
+        self.src, self.dst, self.normals, self.cfg, self.voxel = src, dst, normals, cfg, voxel
+        self.dist2 = (cfg.ransac_distance_voxels * voxel) ** 2
+        self.cos_n = np.cos(np.radians(cfg.ransac_normal_angle_deg))
+        self.size = 8 * cfg.ransac_validate_top  # near-duplicates are removed at the end
+        self.counts = np.zeros(0, np.int64)
+        self.T = np.zeros((0, 4, 4))
+
+    def inlier_share(self) -> float:
+        return float(self.counts[0] / len(self.src)) if len(self.counts) else 0.0
+
+    def add(self, draw: np.ndarray) -> float:
+        """Score the triples ``draw`` (B, 3); returns the best inlier share so far."""
+        src, dst, cfg = self.src, self.dst, self.cfg
+        src_n, dst_n = self.normals
+        ls, ld = edge_lengths(src[draw]), edge_lengths(dst[draw])
+        ok = np.all(
+            (np.minimum(ls, ld) >= cfg.ransac_edge_length_ratio * np.maximum(ls, ld))
+            & (ls > self.voxel),
+            axis=1,
+        )
+        draw = draw[ok]
+        if len(draw) == 0:
+            return self.inlier_share()
+        hyp = triangle_transforms(src[draw], dst[draw])
+        finite = np.all(np.isfinite(hyp), axis=(1, 2))
+        hyp, draw = hyp[finite], draw[finite]
+        rot_n = np.einsum("bij,bkj->bki", hyp[:, :3, :3], src_n[draw])
+        hyp = hyp[np.all(np.einsum("bki,bki->bk", rot_n, dst_n[draw]) >= self.cos_n, axis=1)]
+        if len(hyp) == 0:
+            return self.inlier_share()
+        moved = np.einsum("bij,kj->bki", hyp[:, :3, :3], src) + hyp[:, None, :3, 3]
+        counts = np.count_nonzero(np.sum((moved - dst) ** 2, axis=2) <= self.dist2, axis=1)
+        counts = np.concatenate([self.counts, counts])
+        keep = np.argsort(-counts, kind="stable")[: self.size]
+        self.counts, self.T = counts[keep], np.concatenate([self.T, hyp])[keep]
+        return self.inlier_share()
 
 
 def _rerank(hypotheses, src, dst, pre_i, pre_j, cfg: AlignConfig, voxel: float):

@@ -193,3 +193,34 @@ def test_a_pose_that_overlaps_less_can_fit_as_well():
     # Less than half the overlap, or a residual beyond the acceptance rule: not as good.
     assert not fits_as_well(0.40, 0.90, 0.91, 0.93, 900, acfg)
     assert not fits_as_well(0.90, acfg.max_residual_ratio + 0.1, 0.91, 5.0, 900, acfg)
+
+
+def test_a_leftover_without_usable_descriptors_is_placed_by_rotation_starts(builtin_set):
+    """A scan whose descriptors say nothing (shuffled among its points: no right match) and
+    no pair hypotheses: the descriptor-free starts still place it, at the truth."""
+    import copy
+
+    from mvreg.globalstage.model_search import feature_model
+    from mvreg.globalstage.place import place_leftovers, rotation_candidates
+
+    pre, truth, voxel = builtin_set
+    s = 3
+    scrambled = copy.copy(pre[s])
+    scrambled._cache = {}
+    scrambled.features = np.random.default_rng(0).permutation(pre[s].features)
+    pre2 = [scrambled if k == s else p for k, p in enumerate(pre)]
+    known = {k: T for k, T in truth.items() if k != s}
+    cfg = AlignConfig()
+    # the starts alone rank the truth first, within a feature voxel and 3 deg
+    target = feature_model(pre2, known, sorted(known))
+    source = feature_model(pre2, {s: np.eye(4)}, [s])
+    starts = rotation_candidates(source, target, voxel, cfg, keep=4)
+    c = np.append(pre[s].points.mean(axis=0), 1.0)
+    assert _angle_deg(starts[0], truth[s]) < 3.0
+    assert np.linalg.norm((starts[0] - truth[s]) @ c) < 3 * voxel
+    placed = place_leftovers(pre2, known, [s], voxel, cfg)
+    assert sorted(placed) == [s]
+    T, v = placed[s]
+    assert v.status == "verified" and v.evidence == "model search"
+    assert _angle_deg(T, truth[s]) < 0.5
+    assert np.linalg.norm(T[:3, 3] - truth[s][:3, 3]) < 2 * voxel

@@ -13,7 +13,9 @@ the verified poses ``{scan: T_world_scan}`` and the scans to try, and returns
 
 * RANSAC over descriptor matches (:func:`mvreg.globalstage.model_search.motion_candidates`,
   with the draws among pairwise-consistent matches, :mod:`mvreg.pairwise.guided`: on the
-  model of many scans few mutual matches are right) and point-to-plane ICP on the fine
+  model of many scans few mutual matches are right), or where none of those passes, starts
+  that need no descriptors (:func:`rotation_candidates`: the icosahedral rotations at
+  anchors spread over the model, a few ICP iterations each), and point-to-plane ICP on the fine
   level bring it to a pose whose overlap share and residual pass the pairwise acceptance
   rule (``AlignConfig.min_overlap_ratio``, ``max_residual_ratio`` x the noise), with tight
   support from at least two verified scans (so not a single partner);
@@ -31,11 +33,13 @@ come from the scan-to-model ICP and are not re-solved with the others.
 from __future__ import annotations
 
 import numpy as np
+from scipy.spatial.transform import Rotation
 
 from mvreg.config.align import AlignConfig
 from mvreg.executor import single_threaded_blas
 from mvreg.geometry import transform_points
 from mvreg.globalstage.model_search import (
+    FeatureModel,
     distant_alternative,
     feature_model,
     motion_candidates,
@@ -45,8 +49,15 @@ from mvreg.globalstage.model_search import (
 from mvreg.globalstage.probes import degenerate_direction
 from mvreg.globalstage.scan_model import model_fit, scan_model
 from mvreg.globalstage.verify import ScanVerification, free_space_conflicts
-from mvreg.pairwise.hypotheses import distinct_poses, scan_extent
-from mvreg.pairwise.icp import icp_point_to_plane
+from mvreg.pairwise.hypotheses import distinct_poses, same_pose, scan_extent
+from mvreg.pairwise.icp import feature_level_tree, icp_point_to_plane
+
+# Descriptor-free starts (rotation_candidates): scan points ICP'd per start, iterations,
+# anchors (the most populated cells), and how many scans get them per run (each once).
+START_POINTS = 150
+START_ITERATIONS = 5
+START_ANCHORS = 24
+START_SCANS = 8
 
 
 def place_leftovers(
@@ -64,7 +75,9 @@ def place_leftovers(
     pair results (``results``: ``PairResult``, accepted or not; ``T_i_j`` and
     ``stats["pose_hypotheses"]``) between the scan and a placed scan, carried into the
     world frame by that scan's pose. The ``max_tries`` that bring the most of the scan's
-    feature points onto the model are refined per scan and round."""
+    feature points onto the model are refined per scan and round. Where none passes, the
+    descriptor-free starts (:func:`rotation_candidates`), for at most ``START_SCANS`` scans
+    per call, each once."""
     with single_threaded_blas():  # small SVDs and solves: threads only busy-wait
         return _place_all(pre, T_verified, todo, voxel, acfg, results, max_tries)
 
@@ -74,13 +87,19 @@ def _place_all(pre, T_verified, todo, voxel, acfg, results, max_tries):
     T_all = dict(T_verified)
     todo = [s for s in todo if s not in T_all]
     models: dict[tuple, tuple] = {}  # the placed set -> (feature model, fine model)
+    started: set[int] = set()  # scans that had the descriptor-free starts (once each)
     while todo and len(T_all) >= 2:
         added = []
         for s in todo:
             key = tuple(sorted(T_all))
             if key not in models:  # rebuilt only when a scan was placed
                 models = {key: (feature_model(pre, T_all, key), scan_model(pre, T_all, key))}
-            found = _place_one(s, pre, T_all, models[key], voxel, acfg, results, max_tries)
+            starts = s not in started and len(started) < START_SCANS
+            found, tried = _place_one(
+                s, pre, T_all, models[key], voxel, acfg, results, max_tries, starts
+            )  # fmt: skip
+            if tried:
+                started.add(s)
             if found is not None:
                 T_all[s] = found[0]
                 placed[s] = found
@@ -91,17 +110,35 @@ def _place_all(pre, T_verified, todo, voxel, acfg, results, max_tries):
     return placed
 
 
-def _place_one(s, pre, T_all, models, voxel, acfg, results, max_tries):
-    members = sorted(T_all)
-    target, model = models
+def _place_one(s, pre, T_all, models, voxel, acfg, results, max_tries, starts):
+    """(pose and verification of scan ``s`` on the model, or None; whether the
+    descriptor-free starts were tried). ``starts``: they may be."""
+    target, _ = models
     source = feature_model(pre, {s: np.eye(4)}, [s])
-    if len(source.features) < 3 or len(target.features) < 3:
-        return None
-    # No pose to stay away from: far = -1 keeps every match.
+    if len(source.points) < 3 or len(target.points) < 3:
+        return None, False
+    # Descriptor candidates first; where none passes, starts that need no descriptors.
     candidates = pair_poses(s, results, T_all)
-    candidates += motion_candidates(target, source, acfg, voxel, seed=s, far=-1.0, guided=True)
+    if len(source.features) >= 3 and len(target.features) >= 3:
+        # No pose to stay away from: far = -1 keeps every match.
+        candidates += motion_candidates(
+            target, source, acfg, voxel, seed=s, far=-1.0, guided=True
+        )  # fmt: skip
+    found = _try(s, candidates, source, pre, T_all, models, voxel, acfg, max_tries)
+    if found is not None or not starts:
+        return found, False
+    cands = rotation_candidates(source, target, voxel, acfg, 4 * max_tries)
+    return _try(s, cands, source, pre, T_all, models, voxel, acfg, max_tries), True
+
+
+def _try(s, candidates, source, pre, T_all, models, voxel, acfg, max_tries):
+    """The first of the ``max_tries`` distinct candidates bringing most of the scan onto the
+    model that passes :func:`_check` after ICP on the fine level: (T, verification) or
+    None."""
     if not candidates:
         return None
+    target, model = models
+    members = sorted(T_all)
     shares = [share_on(target, source, C, acfg, voxel) for C in candidates]
     order = np.argsort(-np.asarray(shares), kind="stable")
     centre, radius = scan_extent(source.points)
@@ -119,6 +156,56 @@ def _place_one(s, pre, T_all, models, voxel, acfg, results, max_tries):
         if v is not None:
             return T, v
     return None
+
+
+def rotation_candidates(
+    source: FeatureModel, target: FeatureModel, voxel: float, acfg: AlignConfig, keep: int,
+    max_points: int = START_POINTS, iterations: int = START_ITERATIONS,
+    max_anchors: int = START_ANCHORS,
+) -> list[np.ndarray]:  # fmt: skip
+    """Poses of ``source`` on ``target`` found without descriptors: the 60 rotations of the
+    icosahedral group (none farther than ~40 deg from any rotation), each with the scan's
+    centroid put at every anchor (the mean of the model's points in cells of 3/4 the scan's
+    radius: wherever on the model the scan may lie; the ``max_anchors`` most populated
+    cells), refined by a few point-to-plane ICP
+    iterations on an even subset of the scan's feature points. Returns the ``keep`` that
+    bring most of that subset within the RANSAC inlier distance of the model, best first,
+    no two within ~30 deg of each other (:func:`distinct_poses`).
+    """
+    centre, radius = scan_extent(source.points)
+    idx = np.linspace(0, len(source.points) - 1, min(max_points, len(source.points)))
+    idx = np.unique(idx.astype(np.int64))
+    pts, nrm = source.points[idx], source.normals[idx]
+    cell = 0.75 * radius
+    _, inv = np.unique(np.floor(target.points / cell).astype(np.int64), axis=0, return_inverse=True)
+    inv = inv.ravel()
+    count = np.bincount(inv)
+    anchors = np.stack([np.bincount(inv, weights=target.points[:, a]) / count for a in range(3)], 1)
+    anchors = anchors[np.argsort(-count, kind="stable")[:max_anchors]]
+    tree = feature_level_tree(target)
+    reach = (acfg.ransac_distance_voxels + 1.0) * voxel
+    limit = acfg.ransac_distance_voxels * voxel
+    scored = []
+    for R in Rotation.create_group("I").as_matrix():
+        for a in anchors:
+            T = np.eye(4)
+            T[:3, :3], T[:3, 3] = R, a - R @ centre
+            T = icp_point_to_plane(
+                pts, nrm, target.points, target.normals, tree, T, reach, iterations,
+                acfg.icp_min_normal_cos,
+            )  # fmt: skip
+            d, _ = tree.query(transform_points(T, pts), distance_upper_bound=limit)
+            scored.append((float(np.mean(np.isfinite(d))), T))
+    # Distinct by a turn of ~30 deg (half the radius): ICP from nearby starts often stops
+    # short of the same basin, and one basin would fill every slot.
+    kept: list[np.ndarray] = []
+    for k in np.argsort([-sc for sc, _ in scored], kind="stable"):
+        T = scored[k][1]
+        if not any(same_pose(T, K, 0.5 * radius, centre, radius) for K in kept):
+            kept.append(T)
+            if len(kept) == keep:
+                break
+    return kept
 
 
 def _check(s, T, pre, T_all, members, model, voxel, acfg) -> ScanVerification | None:

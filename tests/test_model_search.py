@@ -224,3 +224,67 @@ def test_a_leftover_without_usable_descriptors_is_placed_by_rotation_starts(buil
     assert v.status == "verified" and v.evidence == "model search"
     assert _angle_deg(T, truth[s]) < 0.5
     assert np.linalg.norm(T[:3, 3] - truth[s][:3, 3]) < 2 * voxel
+
+
+def test_conflict_cuts_split_at_the_wrong_bridges():
+    """Agreeing pairs forming a tree 0-1-2-3 | 3-4 | 4-5 | 4-6 | 6-7, 6-9-8 (the pairs of a
+    machined part, two of them wrong: 3-4 and 4-6). Scans whose views contradict each
+    other across the tree indict the bridges on the way; the two wrong ones separate the
+    most contradictions and are the more ambiguous pairs."""
+    from mvreg.globalstage.graph import conflict_cuts
+
+    edges = [(0, 1), (1, 2), (2, 3), (3, 4), (4, 5), (4, 6), (6, 7), (6, 9), (8, 9)]
+    g: dict[int, set[int]] = {k: set() for k in range(10)}
+    for a, b in edges:
+        g[a].add(b)
+        g[b].add(a)
+    conflicts = [(0, 9), (2, 4), (7, 2), (8, 2), (9, 4), (3, 6)]
+    ambiguous = {frozenset((4, 6)): 5, frozenset((3, 4)): 2}
+
+    def weakness(edge):
+        return ambiguous.get(edge, 1)
+
+    cuts = conflict_cuts(g, conflicts, weakness)
+    assert cuts == [frozenset((4, 6)), frozenset((3, 4))]
+    # One scan contradicting the rest at the end of a chain 0-1-2-3: cut off alone.
+    chain = {0: {1}, 1: {0, 2}, 2: {1, 3}, 3: {2}}
+    assert conflict_cuts(chain, [(3, 0), (3, 1)], lambda e: 5 if e == {1, 2} else 1) == [
+        frozenset((2, 3))
+    ]
+    # Contradictions inside a cycle are no bridge's fault; none between parts not joined.
+    tri = {0: {1, 2}, 1: {0, 2}, 2: {0, 1}, 3: set()}
+    assert conflict_cuts(tri, [(0, 1), (2, 3)], weakness) == []
+
+
+def test_a_split_off_group_is_placed_by_its_motions(builtin_set, monkeypatch):
+    """Two scans that agree with each other, split off the rest in a wrong frame (the old
+    poses of their part), with descriptors that say nothing and no pair hypotheses, and
+    without single-scan rotation starts: the group's own search on the model (its union
+    covers more of the object) places both at the truth."""
+    import copy
+
+    from mvreg.globalstage import place
+
+    pre, truth, voxel = builtin_set
+    left = [3, 6]
+    rng = np.random.default_rng(1)
+    pre2 = list(pre)
+    for s in left:
+        p = copy.copy(pre[s])
+        p._cache = {}
+        p.features = rng.permutation(pre[s].features)
+        pre2[s] = p
+    known = {k: T for k, T in truth.items() if k not in left}
+    M = np.eye(4)
+    M[:3, :3] = rotation_from_vector(np.array([0.9, -0.4, 1.3]))
+    M[:3, 3] = [0.3, -0.2, 0.5]
+    group = {s: M @ truth[s] for s in left}
+    monkeypatch.setattr(place, "START_SCANS", 0)
+    cfg = AlignConfig()
+    assert place.place_leftovers(pre2, known, left, voxel, cfg) == {}
+    placed = place.place_leftovers(pre2, known, left, voxel, cfg, groups=[group])
+    assert sorted(placed) == left
+    for s, (T, v) in placed.items():
+        assert v.status == "verified" and v.evidence == "model search"
+        assert _angle_deg(T, truth[s]) < 0.5
+        assert np.linalg.norm(T[:3, 3] - truth[s][:3, 3]) < 2 * voxel

@@ -4,7 +4,7 @@ on small dicts; used by :mod:`mvreg.globalstage.verify`."""
 
 from __future__ import annotations
 
-__all__ = ["bridge_groups", "bridges", "main_block", "on_cycle"]
+__all__ = ["bridge_groups", "bridges", "conflict_cuts", "main_block", "on_cycle"]
 
 
 def on_cycle(graph: dict[int, set[int]]) -> set[int]:
@@ -125,3 +125,40 @@ def bridge_groups(graph: dict[int, set[int]]) -> list[list[int]]:
         if len(side) >= 2:
             groups.add(tuple(sorted(side)))
     return [list(g) for g in sorted(groups, key=lambda g: (len(g), g))]
+
+
+def conflict_cuts(graph: dict[int, set[int]], conflicts, weakness) -> list[frozenset]:
+    """Bridges to cut so that no two conflicting scans stay connected through one.
+
+    ``conflicts``: pairs of scans (any iterable of 2-tuples) whose views contradict each
+    other under the solve (a free-space test). Two scans joined only through bridges are
+    placed relative to each other by those pairs alone, so a contradiction between them
+    indicts a bridge on the way. Greedy: the bridge separating the most conflicting pairs
+    is cut first (ties: the one cutting off fewer scans, so the fewest poses are given up,
+    then the larger ``weakness(pair)``, then the lower scans), the bridges
+    are found again, until no bridge separates a conflicting pair still connected.
+    Conflicts inside a 2-edge-connected block are left alone (no single pair explains
+    them). Returns the cut pairs in the order cut."""
+    graph = {a: set(b) for a, b in graph.items()}
+    pending = {frozenset(c) for c in conflicts if len(set(c)) == 2 and set(c) <= graph.keys()}
+    cuts: list[frozenset] = []
+    while pending:
+        best, best_key = None, None
+        for edge in bridges(graph):
+            a, b = sorted(edge)
+            side = _reach(graph, a, {edge})
+            if b in side:
+                continue
+            other = _reach(graph, b, {edge})
+            n = sum(1 for c in pending if len(c & side) == 1 and len(c & other) == 1)
+            key = (n, -min(len(side), len(other)), weakness(edge), -a, -b)
+            if n and (best_key is None or key > best_key):
+                best, best_key = edge, key
+        if best is None:
+            break
+        a, b = sorted(best)
+        graph[a].discard(b)
+        graph[b].discard(a)
+        cuts.append(best)
+        pending = {c for c in pending if min(c) in _reach(graph, max(c), set())}
+    return cuts

@@ -20,12 +20,14 @@ the verified poses ``{scan: T_world_scan}`` and the scans to try, and returns
   rule (``AlignConfig.min_overlap_ratio``, ``max_residual_ratio`` x the noise), with tight
   support from at least two verified scans (so not a single partner);
 * neither free-space test conflicts with a supporting scan
-  (:func:`mvreg.globalstage.verify.free_space_conflicts`, the pairwise limits loosened by
-  ``coarse_gate_slack``);
+  (:func:`mvreg.globalstage.verify.free_space_conflicts`, the pairwise limits as they are:
+  the pose was refined by ICP on the model);
 * no degree of freedom is left open: no continuous one
   (:func:`mvreg.globalstage.probes.degenerate_direction`) and no second, distant pose that
   fits as well (:func:`mvreg.globalstage.model_search.distant_alternative`).
 
+Scans split off together (``groups``: parts of the pair graph cut where views
+contradicted each other) are also tried at their group's motions onto the model.
 Placed scans join the model for the next ones (rounds until none is added). Their poses
 come from the scan-to-model ICP and are not re-solved with the others.
 """
@@ -37,7 +39,7 @@ from scipy.spatial.transform import Rotation
 
 from mvreg.config.align import AlignConfig
 from mvreg.executor import single_threaded_blas
-from mvreg.geometry import transform_points
+from mvreg.geometry import invert_transform, transform_points
 from mvreg.globalstage.model_search import (
     FeatureModel,
     distant_alternative,
@@ -58,6 +60,10 @@ START_POINTS = 150
 START_ITERATIONS = 5
 START_ANCHORS = 24
 START_SCANS = 8
+# A group's descriptor-free starts kept (each tried on every scan of the group, once): the
+# right one is rarely the best fit when the group overlaps the model little.
+GROUP_STARTS = 48
+FIRST_STAGE_POINTS = 2000  # fine points in the wide first ICP stage of a placement
 
 
 def place_leftovers(
@@ -68,6 +74,7 @@ def place_leftovers(
     acfg: AlignConfig,
     results=(),
     max_tries: int = 6,
+    groups=(),
 ) -> dict[int, tuple[np.ndarray, ScanVerification]]:
     """Scans of ``todo`` placed on the model of the verified scans (module docstring).
 
@@ -77,17 +84,27 @@ def place_leftovers(
     world frame by that scan's pose. The ``max_tries`` that bring the most of the scan's
     feature points onto the model are refined per scan and round. Where none passes, the
     descriptor-free starts (:func:`rotation_candidates`), for at most ``START_SCANS`` scans
-    per call, each once."""
+    per call, each once.
+
+    ``groups``: [{scan: T_world_scan}], scans whose relative poses their own pairs fix
+    (parts of the pair graph split off where views contradicted each other). A group's
+    scans are also tried at the group's motions: the poses of its union on the model
+    (:func:`motion_candidates` and :func:`rotation_candidates` of the union, once per
+    group: a group covers more of the object than any of its scans), and the motion of
+    a group mate already placed. Each scan must still pass :func:`_check` on its own."""
     with single_threaded_blas():  # small SVDs and solves: threads only busy-wait
-        return _place_all(pre, T_verified, todo, voxel, acfg, results, max_tries)
+        return _place_all(pre, T_verified, todo, voxel, acfg, results, max_tries, groups)
 
 
-def _place_all(pre, T_verified, todo, voxel, acfg, results, max_tries):
+def _place_all(pre, T_verified, todo, voxel, acfg, results, max_tries, groups):
     placed: dict[int, tuple[np.ndarray, ScanVerification]] = {}
     T_all = dict(T_verified)
     todo = [s for s in todo if s not in T_all]
     models: dict[tuple, tuple] = {}  # the placed set -> (feature model, fine model)
     started: set[int] = set()  # scans that had the descriptor-free starts (once each)
+    group_of = {s: g for g in groups if len(g) >= 2 for s in g}
+    motions: dict[tuple, list] = {}  # a group's motions onto the model (searched once)
+    grouped: set[int] = set()  # scans that had their group's searched motions
     while todo and len(T_all) >= 2:
         added = []
         for s in todo:
@@ -95,8 +112,13 @@ def _place_all(pre, T_verified, todo, voxel, acfg, results, max_tries):
             if key not in models:  # rebuilt only when a scan was placed
                 models = {key: (feature_model(pre, T_all, key), scan_model(pre, T_all, key))}
             starts = s not in started and len(started) < START_SCANS
+            group = group_of.get(s)
+            extra = _group_poses(s, group, pre, T_all, models[key][0], voxel, acfg, motions)
+            if group is not None and s in grouped:  # its group's search: once per scan
+                extra = extra[: len([k for k in group if k in T_all])]
+            grouped.add(s)
             found, tried = _place_one(
-                s, pre, T_all, models[key], voxel, acfg, results, max_tries, starts
+                s, pre, T_all, models[key], voxel, acfg, results, max_tries, starts, extra
             )  # fmt: skip
             if tried:
                 started.add(s)
@@ -110,13 +132,32 @@ def _place_all(pre, T_verified, todo, voxel, acfg, results, max_tries):
     return placed
 
 
-def _place_one(s, pre, T_all, models, voxel, acfg, results, max_tries, starts):
+def _group_poses(s, group, pre, T_all, target, voxel, acfg, motions) -> list[np.ndarray]:
+    """Poses of scan ``s`` from its group's motions (:func:`place_leftovers`): those of the
+    mates already placed first, then those of the group's search on the model."""
+    if group is None:
+        return []
+    out = [T_all[k] @ invert_transform(group[k]) @ group[s] for k in group if k in T_all]
+    key = tuple(sorted(group))
+    if key not in motions:
+        source = feature_model(pre, group, key)
+        found = motion_candidates(target, source, acfg, voxel, seed=key[0], far=-1.0, guided=True)
+        motions[key] = found + rotation_candidates(source, target, voxel, acfg, GROUP_STARTS)
+    return out + [M @ group[s] for M in motions[key]]
+
+
+def _place_one(s, pre, T_all, models, voxel, acfg, results, max_tries, starts, extra=()):
     """(pose and verification of scan ``s`` on the model, or None; whether the
-    descriptor-free starts were tried). ``starts``: they may be."""
+    descriptor-free starts were tried). ``starts``: they may be. ``extra``: candidate
+    poses tried first (a group's motions)."""
     target, _ = models
     source = feature_model(pre, {s: np.eye(4)}, [s])
     if len(source.points) < 3 or len(target.points) < 3:
         return None, False
+    if extra:  # every one of them: the group's best fit is often not the right one
+        found = _try(s, extra, source, pre, T_all, models, voxel, acfg, len(extra))
+        if found is not None:
+            return found, False
     # Descriptor candidates first; where none passes, starts that need no descriptors.
     candidates = pair_poses(s, results, T_all)
     if len(source.features) >= 3 and len(target.features) >= 3:
@@ -145,13 +186,22 @@ def _try(s, candidates, source, pre, T_all, models, voxel, acfg, max_tries):
     best = distinct_poses([candidates[k] for k in order], 3 * voxel, centre, radius)
     scan = pre[s]
     reach = (acfg.ransac_distance_voxels + 1.0) * voxel
+    # The wide first ICP stage on an even subset of the fine points (the cost is in it);
+    # starts that end in a basin already tried are not refined again.
+    sub = np.unique(np.linspace(0, len(scan.fine_points) - 1, FIRST_STAGE_POINTS).astype(int))
+    tried: list[np.ndarray] = []
     for C in best[:max_tries]:
-        T = C
-        for dist, iters in ((reach, 50), (voxel, 30)):
-            T = icp_point_to_plane(
-                scan.fine_points, scan.fine_normals, model.points, model.normals, model.tree,
-                T, dist, iters, acfg.icp_min_normal_cos,
-            )  # fmt: skip
+        T = icp_point_to_plane(
+            scan.fine_points[sub], scan.fine_normals[sub], model.points, model.normals,
+            model.tree, C, reach, 50, acfg.icp_min_normal_cos,
+        )  # fmt: skip
+        if any(same_pose(T, K, voxel, centre, radius) for K in tried):
+            continue
+        tried.append(T)
+        T = icp_point_to_plane(
+            scan.fine_points, scan.fine_normals, model.points, model.normals, model.tree,
+            T, voxel, 30, acfg.icp_min_normal_cos,
+        )  # fmt: skip
         v = _check(s, T, pre, T_all, members, model, voxel, acfg)
         if v is not None:
             return T, v
@@ -226,7 +276,11 @@ def _check(s, T, pre, T_all, members, model, voxel, acfg) -> ScanVerification | 
         model_residual_ratio=ratio, supporting_scans=[names[k] for k in support],
     )  # fmt: skip
     with_s = {**T_all, s: T}
-    if free_space_conflicts(v, s, members, support, pre, with_s, names, acfg):
+    # The pairwise limits as they are: ICP on the model has refined this pose (a scan
+    # placed ~10 deg off on a planar part shows 0.02 of its points where a supporting scan
+    # saw nothing; at its true pose, none).
+    strict = acfg.model_copy(update={"coarse_gate_slack": 1.0})
+    if free_space_conflicts(v, s, members, support, pre, with_s, names, strict):
         return None
     if degenerate_direction(model, pts, nrm, tight, idx, noise, voxel, acfg) is not None:
         return None

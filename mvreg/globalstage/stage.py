@@ -15,7 +15,7 @@ from __future__ import annotations
 
 from collections.abc import Callable, Sequence
 from concurrent.futures import Future
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from typing import Protocol
 
 import numpy as np
@@ -152,7 +152,7 @@ class GlobalStage:
             timed("verify")  # the round that dropped scans, before the stages run again
             return self.run(ctx, pre, kept, progress, timed)
 
-        out, ver, dropped = verify_and_resolve(
+        out, ver, dropped, groups = verify_and_resolve(
             pre, results, out, resolve, ctx.voxel, ctx.cfg.align,
             discrete=self.plan.model_search, executor=ctx.executor,
         )  # fmt: skip
@@ -160,14 +160,35 @@ class GlobalStage:
         if self.plan.model_search and out.solution is not None:
             verified = {s: T for s, T in out.T_world_scan.items() if s not in dropped}
             todo = [s for s in range(len(pre)) if s not in verified and _worth_placing(ver.get(s))]
-            for s, (T, v) in place_leftovers(
-                pre, verified, todo, ctx.voxel, ctx.cfg.align, results
-            ).items():
+            placed = place_leftovers(
+                pre, verified, todo, ctx.voxel, ctx.cfg.align, results, groups=groups
+            )  # fmt: skip
+            for s, (T, v) in placed.items():
                 out.solution.T_world_scan[s] = T
                 ver[s] = v
                 dropped = [d for d in dropped if d != s]
             timed("place_leftovers")
+            if placed and self.plan.final_check:
+                self._polish(ctx, pre, out, dropped)
+                timed("polish")
         return out, ver, dropped
+
+    def _polish(self, ctx, pre, out, dropped) -> None:
+        """Joint ICP over the verified scans once leftovers were placed: a placed scan's
+        pose comes from ICP on the model alone, and the scans solved before it never saw
+        it (a leaf scan of a planar part held by one pair, 3 deg off, is set by the placed
+        scans that overlap it). Kept on joint ICP's own terms: no scan moved further than
+        ``refine.joint_icp_max_move_voxels`` (below the one-voxel tolerance the scans were
+        verified at)."""
+        keep = {s: T for s, T in out.T_world_scan.items() if s not in dropped}
+        sol = replace(out.solution, T_world_scan=dict(keep))
+        pairs, levels, min_cos = self.plan.joint_icp_scope(ctx, out)
+        new, log = joint_icp(
+            pre, sol, ctx.cfg.refine, ctx.cfg.robust, min_cos, ctx.voxel, ctx.executor,
+            levels=levels, pairs=pairs,
+        )  # fmt: skip
+        if log is not None and log.get("accepted"):
+            out.solution.T_world_scan.update(new.T_world_scan)
 
 
 def _worth_placing(v) -> bool:

@@ -72,7 +72,11 @@ to an object.
 :func:`verify_and_resolve` is the pipeline loop: scans that are not verified leave the
 registered set, the rest is solved again without the pairs touching them (so a wrong pair
 cannot drag the others through the gauge), and verified again (a few rounds at most); the
-search for second poses runs once, when a round drops nothing else.
+search for second poses runs once, when a round drops nothing else. Before scans are
+dropped, contradictions between scans joined only through single pairs (bridges of the
+agreeing pairs) are settled by cutting those pairs
+(:func:`mvreg.globalstage.graph.conflict_cuts`): the largest part is solved again and the
+parts cut off keep their own relative poses, to be placed on it as groups.
 :mod:`mvreg.globalstage.place` then tries to place the scans left out on the model of the
 verified ones.
 """
@@ -87,7 +91,7 @@ import numpy as np
 from mvreg.config.align import AlignConfig
 from mvreg.executor import single_threaded_blas
 from mvreg.geometry import invert_transform, transform_points
-from mvreg.globalstage.graph import bridge_groups, main_block, on_cycle, one_side
+from mvreg.globalstage.graph import bridge_groups, conflict_cuts, main_block, on_cycle, one_side
 from mvreg.globalstage.model_search import axis_turns, distant_alternative, self_symmetry
 from mvreg.globalstage.probes import degenerate_direction, unsettled
 from mvreg.globalstage.robust import pair_disagreements
@@ -118,6 +122,9 @@ class ScanVerification:
     unseen_violation: float | None = None
     degenerate_dof: str | None = None
     supporting_scans: list[str] = field(default_factory=list)
+    # Scans whose views contradict this one under the poses checked (free-space tests
+    # against scans it shares surface with; before conflicts are settled). Not reported.
+    conflicting: list[int] = field(default_factory=list, repr=False)
 
     def to_dict(self) -> dict:
         def num(x):
@@ -205,6 +212,8 @@ def verify_scans(
     checked = _map(executor, check, scans)
     out = {s: c[0] for s, c in zip(scans, checked, strict=True)}
     conflicts = {s: c[1] for s, c in zip(scans, checked, strict=True)}
+    for s in scans:
+        out[s].conflicting = sorted({k for k, _ in conflicts[s]})
     _settle_conflicts(out, conflicts, scans)
     if discrete:
         search_alternatives(out, graph, pre, T_world_scan, voxel, acfg, results, executor)
@@ -455,12 +464,15 @@ def verify_and_resolve(
     ``T_world_scan`` ({scan index: (4, 4)}) and ``pair_weight`` ({(i, j): weight}).
     ``resolve(results)``: runs the global stage again on ``results`` and returns a new
     state of the same kind. Returns (state, {scan index: ScanVerification} for every scan
-    that had a pose at some point, the dropped scan indices). The search runs again on a
+    that had a pose at some point, the dropped scan indices, the parts split off where
+    views contradicted each other: [{scan: T_world_scan}], poses of the solve before the
+    split, every scan of them dropped). The search runs again on a
     set that settles after a search dropped scans (their pairs no longer hold the others in
     place, so a group may now show its better pose). The caller reports no pose
     for a dropped scan (after the last allowed round the state may still hold one).
     """
     dropped: dict[int, ScanVerification] = {}
+    groups: list[dict[int, np.ndarray]] = []
     rounds = 0
     searched: set | None = None  # the set the search against the model last ran on
 
@@ -482,6 +494,20 @@ def verify_and_resolve(
 
     while True:
         ver, bad = check(False)
+        cut, graph = _cut_links(ver, pre, results, solved, voxel, agree_voxels) if bad else ([], {})
+        if cut and rounds < max_rounds:
+            # Split where the views contradict each other, re-solve the largest part;
+            # the other parts are placed on it afterwards, each moved as one
+            # (:func:`mvreg.globalstage.place.place_leftovers`).
+            rounds += 1
+            results = [r for r in results if frozenset((r.i, r.j)) not in cut]
+            before = solved.T_world_scan
+            solved = resolve([r for r in results if r.i not in dropped and r.j not in dropped])
+            off = sorted(set(before) - set(solved.T_world_scan) - dropped.keys())
+            for s in off:
+                dropped[s] = _cut_off(ver[s], cut, pre)
+            groups += _parts(graph, cut, off, before)
+            continue
         if not bad and discrete and remaining() != searched:
             searched = remaining()  # a settled set not searched yet (a drop changes it)
             ver, bad = check(True, ver)
@@ -499,4 +525,58 @@ def verify_and_resolve(
         dropped.update(bad)
     ver = {s: v for s, v in ver.items() if s not in dropped and s in solved.T_world_scan}
     ver.update(dropped)
-    return solved, ver, sorted(dropped)
+    return solved, ver, sorted(dropped), [g for g in groups if g.keys() <= dropped.keys()]
+
+
+def _cut_links(ver, pre, results, solved, voxel, agree_voxels) -> tuple[list[frozenset], dict]:
+    """The agreeing pairs to cut (:func:`mvreg.globalstage.graph.conflict_cuts`) so that no
+    two scans whose views contradict each other stay joined through a single pair. Ties go
+    against the more ambiguous pair: more distinct hypotheses that passed the acceptance
+    rule, then one found by the rotation search (no descriptor consensus), then the lower
+    final weight."""
+    T = {s: T for s, T in solved.T_world_scan.items() if s in ver}
+    graph = agreeing_graph(pre, results, solved.pair_weight, T, voxel, agree_voxels)
+    conflicts = {(s, k) for s, v in ver.items() for k in v.conflicting if k in graph}
+    if not conflicts:
+        return [], graph
+    by_pair = {frozenset((r.i, r.j)): r for r in results if r.accepted}
+
+    def weakness(edge):
+        r = by_pair.get(edge)
+        if r is None:
+            return (0, 0, 0.0)
+        w = solved.pair_weight.get((r.i, r.j), solved.pair_weight.get((r.j, r.i), 0.0))
+        return (int(r.stats.get("hypotheses_accepted", 1)), int(bool(r.stats.get("search"))), -w)
+
+    return conflict_cuts(graph, conflicts, weakness), graph
+
+
+def _parts(graph, cut, scans, T_world_scan) -> list[dict[int, np.ndarray]]:
+    """The scans ``scans`` split into the parts the agreeing ``graph`` joins without the
+    ``cut`` pairs, each with its poses {scan: T_world_scan} (relative poses within a part
+    are what its own pairs say)."""
+    scans, out = set(scans), []
+    while scans:
+        part, todo = set(), [min(scans)]
+        while todo:
+            a = todo.pop()
+            if a in part:
+                continue
+            part.add(a)
+            todo += [b for b in graph.get(a, ()) if b in scans and frozenset((a, b)) not in cut]
+        scans -= part
+        out.append({s: T_world_scan[s] for s in sorted(part)})
+    return out
+
+
+def _cut_off(v: ScanVerification, cut, pre) -> ScanVerification:
+    names = [p.name for p in pre]
+    links = ", ".join(f"{names[a]}-{names[b]}" for a, b in (sorted(e) for e in cut))
+    return ScanVerification(
+        status="unverified",
+        reason=(
+            f"its link to the largest consistent part was cut ({links}): views on the two "
+            "sides contradict each other (free-space tests)"
+        ),
+        agreeing_pairs=v.agreeing_pairs,
+    )

@@ -29,7 +29,8 @@ the verified poses ``{scan: T_world_scan}`` and the scans to try, and returns
 Scans split off together (``groups``: parts of the pair graph cut where views
 contradicted each other) are also tried at their group's motions onto the model.
 Placed scans join the model for the next ones (rounds until none is added). Their poses
-come from the scan-to-model ICP and are not re-solved with the others.
+come from the scan-to-model ICP; the pipeline then refines them with the others by one
+joint ICP (:meth:`mvreg.globalstage.stage.GlobalStage.run_verified`).
 """
 
 from __future__ import annotations

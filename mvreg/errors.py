@@ -30,6 +30,9 @@ class ScanFileError(InputError):
         self.reason = reason
         super().__init__(f"{self.path}: {reason}")
 
+    def __reduce__(self):  # pickled back from a worker process (Dask)
+        return (type(self), (self.path, self.reason))
+
 
 class ProblemError(InputError):
     """A patch problem is malformed (NaN, bad indices, duplicate observations, ...)."""
@@ -51,6 +54,9 @@ class DisconnectedError(ProblemError):
             f"the patch graph is disconnected into {len(components)} components: {parts}"
         )
 
+    def __reduce__(self):
+        return (type(self), (self.components,))
+
 
 class IllPosedError(ProblemError):
     """Some rotation is not determined by the data (lambda_{d+1}(C) ~ 0).
@@ -63,6 +69,9 @@ class IllPosedError(ProblemError):
     def __init__(self, message: str, patches: list[str]):
         self.patches = patches
         super().__init__(message)
+
+    def __reduce__(self):
+        return (type(self), (str(self), self.patches))
 
 
 class ConfigError(InputError):

@@ -267,3 +267,40 @@ def test_a_lost_workers_task_is_retried(ex, tmp_path):
     marker = str(tmp_path / "died")
     assert map_shared(ex, _die_once, marker, [1, 2, 3, 4]) == [2, 4, 6, 8]
     assert os.path.exists(marker)
+
+
+def test_every_typed_error_survives_pickling():
+    """A worker process sends an error back pickled: each typed error must come back as
+    the same class with the same message and attributes (an error whose ``__init__``
+    takes more than the message cannot be rebuilt from ``args`` alone)."""
+    from mvreg.errors import (
+        DisconnectedError,
+        IllPosedError,
+        OutputExistsError,
+        ProblemError,
+        ScanFileError,
+        SolverError,
+    )
+    from mvreg.io.atomic import OutputWriteError
+    from mvreg.io.loaders.base import TooFewPointsError
+    from mvreg.io.merged_formats import MergedFormatError
+
+    errors = [
+        ScanFileError("/data/a.ply", "not a PLY file"),
+        TooFewPointsError("/data/b.e57", "3 points, fewer than 50", scan="b.e57#2"),
+        DisconnectedError([["p0", "p1"], ["p2"]]),
+        IllPosedError("rotation of p3 not determined", ["p3"]),
+        OutputWriteError("/out/merged.ply", "No space left on device"),
+        MergedFormatError("/out/merged.e57", "pye57 missing"),
+        TaskError("pair scan_001.ply, scan_004.ply", "ValueError: boom"),
+        ConfigError("voxel_size 0 must be positive"),
+        ProblemError("bad"),
+        OutputExistsError("exists"),
+        SolverError("nan"),
+    ]
+    for e in errors:
+        for dumps in (pickle.dumps, cloudpickle.dumps):
+            back = pickle.loads(dumps(e))
+            assert type(back) is type(e)
+            assert str(back) == str(e)
+            assert back.__dict__ == e.__dict__

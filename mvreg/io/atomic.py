@@ -28,6 +28,9 @@ class OutputWriteError(MvregError):
         self.path, self.reason = str(path), reason
         super().__init__(f"{self.path}: cannot write ({reason})")
 
+    def __reduce__(self):  # pickled back from a worker process (Dask)
+        return (type(self), (self.path, self.reason))
+
     def relocate(self, staging: Path, final: Path) -> None:
         """Name the file at ``final`` instead of inside the ``staging`` folder."""
         try:

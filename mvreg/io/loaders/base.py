@@ -87,6 +87,9 @@ class TooFewPointsError(ScanFileError):
         self.scan = scan or Path(path).name
         super().__init__(path, reason)
 
+    def __reduce__(self):
+        return (type(self), (self.path, self.reason, self.scan))
+
 
 @runtime_checkable
 class ScanLoader(Protocol):

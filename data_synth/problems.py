@@ -9,6 +9,7 @@ translation of the order of the scene size. Noise is Gaussian with standard devi
 
 from __future__ import annotations
 
+import os
 from dataclasses import dataclass
 
 import numpy as np
@@ -16,6 +17,7 @@ from scipy.sparse import coo_matrix
 from scipy.sparse.csgraph import connected_components
 from scipy.spatial import cKDTree
 
+from mvreg.errors import InputError
 from mvreg.geometry import random_rotations
 from mvreg.solver.problem import PatchProblem
 
@@ -80,6 +82,26 @@ def overlap_graph(
     return centres, e
 
 
+def problem_bytes(num_patches: int, d: int, degree: int, nodes_per_pair: int) -> float:
+    """Peak memory of :func:`make_problem` (bytes, an estimate from above): per
+    observation its coordinates, indices and the gathered rotation of its patch."""
+    observations = float(num_patches) * degree * nodes_per_pair  # 2 per shared node
+    return observations * (8 * d * d + 32 * d + 96) + float(num_patches) * 64 * d
+
+
+def check_problem_size(num_patches: int, d: int, degree: int, nodes_per_pair: int) -> None:
+    """InputError naming the sizes when :func:`make_problem` would need more than half
+    of this machine's memory (checked before anything is allocated)."""
+    need = problem_bytes(num_patches, d, degree, nodes_per_pair)
+    have = os.sysconf("SC_PHYS_PAGES") * os.sysconf("SC_PAGE_SIZE")
+    if need > have / 2:
+        raise InputError(
+            f"--patches {num_patches} with --degree {degree} and --nodes-per-pair "
+            f"{nodes_per_pair}: needs about {need / 2**30:.3g} GiB, more than half of this "
+            f"machine's {have / 2**30:.3g} GiB"
+        )
+
+
 def make_problem(
     num_patches: int,
     d: int = 3,
@@ -91,6 +113,7 @@ def make_problem(
     seed: int = 0,
 ) -> tuple[PatchProblem, SyntheticTruth]:
     """A random REG instance and its ground truth (see module docstring)."""
+    check_problem_size(num_patches, d, degree, nodes_per_pair)
     rng = np.random.default_rng(seed)
     m = int(num_patches)
     centres, edges = overlap_graph(rng, m, d, degree, graph)

@@ -133,9 +133,9 @@ BAD_FILES = {
     "header_only.ply": (b"ply\nformat ascii 1.0\nelement vertex 10\n", "corrupt header"),
     "nan_only.xyz": (b"nan nan nan\n" * 300, "NaN"),
     "few.xyz": (b"".join(f"{i} 0 1\n".encode() for i in range(20)), "fewer than the minimum"),
-    "unparsable.xyz": (b"hello world\nthis is not a scan\n" * 20, "no points"),
+    "unparsable.xyz": (b"hello world\nthis is not a scan\n" * 20, "line 1"),
     "wrong_shape.npy": (None, "expected an (N, 3) or (N, 6)"),
-    "not_numpy.npy": (b"this is no npy file" * 10, "cannot read"),
+    "not_numpy.npy": (b"this is no npy file" * 10, "not a .npy file"),
     "truncated.pcd": (
         b"VERSION 0.7\nFIELDS x y z\nSIZE 4 4 4\nTYPE F F F\nCOUNT 1 1 1\nWIDTH 500\n"
         b"HEIGHT 1\nVIEWPOINT 0 0 0 1 0 0 0\nPOINTS 500\nDATA binary\n" + bytes(120),

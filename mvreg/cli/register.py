@@ -95,6 +95,21 @@ def register(
     run_guarded(_run)
 
 
+def check_rrd_path(rrd: Path, folder, force: bool) -> None:
+    """Refuse a --rrd that would overwrite an input (even with --force) or a folder."""
+    from mvreg.errors import InputError, OutputExistsError
+
+    if not str(rrd).strip():
+        raise InputError("--rrd '': give a file name")
+    if rrd.is_dir():
+        raise InputError(f"--rrd {rrd}: is a folder; give a file name")
+    target, inp = rrd.resolve(), Path(folder).resolve()
+    if target == inp or inp in target.parents:
+        raise InputError(f"--rrd {rrd}: is inside the input folder {folder}; choose another")
+    if rrd.exists() and not force:
+        raise OutputExistsError(f"{rrd} exists (use --force to overwrite)")
+
+
 def register_folder(
     folder,
     out,
@@ -109,7 +124,6 @@ def register_folder(
     sequence=False,
 ):
     """The body of `mvreg register` (also used by `mvreg demo`). Returns the exit code."""
-    from mvreg.errors import OutputExistsError
     from mvreg.io.output_folder import OutputFolder
     from mvreg.io.writers import residual_heatmap, write_registration
     from mvreg.viz import make_recorder
@@ -121,8 +135,8 @@ def register_folder(
 
     output = OutputFolder(out, force=force, inputs=[folder])
     output.check()  # refuse before spending time
-    if rrd is not None and rrd.exists() and not force:
-        raise OutputExistsError(f"{rrd} exists (use --force to overwrite)")
+    if rrd is not None and not no_rrd:
+        check_rrd_path(Path(rrd), folder, force)
     with output as staging:  # written into staging, swapped in on success
         rrd_path = None if no_rrd else output.staged(rrd or staging / "recording.rrd")
         rec = make_recorder(rrd_path, spawn=spawn, recording_id=f"mvreg-{cfg.seed}")

@@ -225,7 +225,10 @@ def measure_voxel(target: int, scan: Scan) -> tuple[float, float]:
         spacing = float(np.linalg.norm(np.ptp(pts, axis=0))) / np.sqrt(len(pts))
     voxel = spacing * np.sqrt(max(len(pts), 1) / target)
     for _ in range(2):
-        voxel *= np.sqrt(_voxel_count(pts, voxel) / target)
+        count = _voxel_count(pts, voxel)
+        if count == 0:  # every point alone in its cell: fewer points than the target
+            return max(voxel, spacing), spacing
+        voxel *= np.sqrt(count / target)
     return voxel, spacing
 
 

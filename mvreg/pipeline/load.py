@@ -19,7 +19,7 @@ from pathlib import Path
 
 import numpy as np
 
-from mvreg.errors import InputError
+from mvreg.errors import InputError, ScanFileError
 from mvreg.io.loaders import Scan, TooFewPointsError, display_path, load_scan_file, scan_folder
 from mvreg.io.poses import pose_with_offset, read_poses_json
 
@@ -126,11 +126,12 @@ def drop_far_strays(scan: Scan, min_points: int) -> Scan:
     from its median point (counted in ``num_dropped_far``); the same object when none is.
     One such point otherwise makes the voxel grids of every later stage impossibly large."""
     centre = np.median(scan.points, axis=0)
-    r = np.linalg.norm(scan.points - centre, axis=1)
+    with np.errstate(over="ignore", invalid="ignore"):  # garbage bodies: checked below
+        r = np.linalg.norm(scan.points - centre, axis=1)
     radius = float(np.median(r))
-    far = r > FAR_STRAY_FACTOR * max(radius, np.finfo(float).tiny)
+    far = ~(r <= FAR_STRAY_FACTOR * max(radius, np.finfo(float).tiny))
     if not np.any(far):
-        return scan
+        return check_spacing(scan)
     keep = ~far
     if keep.sum() < min_points:
         raise TooFewPointsError(
@@ -139,12 +140,47 @@ def drop_far_strays(scan: Scan, min_points: int) -> Scan:
             f"of {min_points} (min_points)",
             scan=scan.name,
         )
-    return replace(
-        scan,
-        points=scan.points[keep],
-        normals=None if scan.normals is None else scan.normals[keep],
-        colors=None if scan.colors is None else scan.colors[keep],
-        num_dropped_far=int(far.sum()),
+    return check_spacing(
+        replace(
+            scan,
+            points=scan.points[keep],
+            normals=None if scan.normals is None else scan.normals[keep],
+            colors=None if scan.colors is None else scan.colors[keep],
+            num_dropped_far=int(far.sum()),
+        )
+    )
+
+
+# A scan whose extent is more than this many times its point spacing is not a sampled
+# surface but a misread body (random bytes, the wrong byte order): their values spread
+# over hundreds of orders of magnitude. Real scans stay below ~1e6 (a 1 km TLS scan at
+# 1 mm spacing); float64 keeps ~16 digits.
+SPACING_RATIO_MAX = 1e10
+_SPACING_SAMPLE = 4096
+
+
+def check_spacing(scan: Scan) -> Scan:
+    """``scan`` unchanged, or ScanFileError naming its file when its extent about its
+    median point exceeds ``SPACING_RATIO_MAX`` times its median nearest-neighbour spacing
+    (measured on an evenly strided sample of distinct points: sparser, so never stricter)."""
+    from scipy.spatial import cKDTree
+
+    pts = scan.points[:: max(1, len(scan.points) // _SPACING_SAMPLE)]
+    pts = np.unique(pts, axis=0)
+    if len(pts) < 2:
+        return scan
+    with np.errstate(over="ignore", invalid="ignore"):
+        local = pts - np.median(pts, axis=0)
+        extent = float(np.max(np.linalg.norm(local, axis=1)))
+        spacing = float(np.median(cKDTree(local).query(local, k=2)[0][:, 1]))
+    if np.isfinite(extent) and extent <= SPACING_RATIO_MAX * spacing:
+        return scan
+    spread = f"{extent:.3g}" if np.isfinite(extent) else "more than float64 can square"
+    raise ScanFileError(
+        scan.path,
+        f"not a sampled surface: the points spread over {spread} with a median "
+        f"spacing of {spacing:.3g} (more than {SPACING_RATIO_MAX:.0e} times it); "
+        "a corrupt body or the wrong byte order?",
     )
 
 

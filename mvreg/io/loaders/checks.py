@@ -17,7 +17,7 @@ Every problem raises :class:`~mvreg.errors.ScanFileError` naming the file (and t
 from __future__ import annotations
 
 from collections.abc import Iterator
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import BinaryIO
 
@@ -48,6 +48,7 @@ class Element:
     count: int
     types: list[tuple[str, int]]  # (kind 'f'/'i'/'u', bytes) per value
     has_list: bool = False
+    names: list[str] = field(default_factory=list)  # PLY property names (lists included)
 
     @property
     def row_bytes(self) -> int | None:
@@ -80,6 +81,8 @@ def _ply_header(f: BinaryIO, path: Path) -> tuple[str, list[Element], int]:
             continue
         if tok[0] == "format" and len(tok) >= 2:
             fmt = tok[1]
+            if len(tok) >= 3 and tok[2] not in ("1.0", "1"):
+                raise ScanFileError(path, f"unsupported PLY version {tok[2]!r} (only 1.0)")
         elif tok[0] == "element" and len(tok) >= 3:
             try:
                 count = int(tok[2])
@@ -89,17 +92,28 @@ def _ply_header(f: BinaryIO, path: Path) -> tuple[str, list[Element], int]:
                 raise ScanFileError(path, f"corrupt PLY header line {line!r}")
             elements.append(Element(tok[1], count, []))
         elif tok[0] == "property" and elements and len(tok) >= 3:
-            if tok[1] == "list":
-                elements[-1].has_list = True
-                continue
-            if tok[1] not in _PLY_TYPES:
-                raise ScanFileError(path, f"unknown PLY property type {tok[1]!r}")
-            elements[-1].types.append(_PLY_TYPES[tok[1]])
+            _add_property(path, elements[-1], tok)
     if fmt not in ("ascii", "binary_little_endian", "binary_big_endian"):
         raise ScanFileError(path, f"unknown PLY format {fmt!r}")
     if not any(e.name == "vertex" for e in elements):
         raise ScanFileError(path, "PLY file has no vertex element")
+    missing = [c for c in "xyz" if c not in _vertex(elements).names]
+    if missing:
+        raise ScanFileError(path, f"the PLY vertex element has no {'/'.join(missing)} property")
     return fmt, elements, len(header)
+
+
+def _add_property(path: Path, element: Element, tok: list[str]) -> None:
+    name = tok[-1]
+    if name in element.names:
+        raise ScanFileError(path, f"PLY property {name!r} of {element.name} declared twice")
+    element.names.append(name)
+    if tok[1] == "list":
+        element.has_list = True
+        return
+    if tok[1] not in _PLY_TYPES:
+        raise ScanFileError(path, f"unknown PLY property type {tok[1]!r}")
+    element.types.append(_PLY_TYPES[tok[1]])
 
 
 def _vertex(elements: list[Element]) -> Element:
@@ -309,6 +323,36 @@ def check_pcd(path: Path) -> np.ndarray | None:
         if not np.allclose(v, [0, 0, 0, 1, 0, 0, 0]):
             return v[:3]
     return None
+
+
+def check_text(path: Path, min_values: int, counted: bool = False) -> None:
+    """Check an XYZ-like text file (streaming): every non-blank line holds the same
+    number (at least ``min_values``) of numbers in the float64 range (``nan`` allowed:
+    such rows are dropped later, counted). With ``counted`` (PTS) the first line is the
+    number of points, which must match the rows that follow. Raises ScanFileError."""
+    with path.open("rb") as f:
+        declared, first = None, 1
+        if counted:
+            head = f.readline(MAX_LINE_BYTES).split()
+            if len(head) != 1 or not head[0].isdigit():
+                shown = b" ".join(head).decode("latin-1")[:40]
+                raise ScanFileError(path, f"line 1: {shown!r} is not a number of points")
+            declared, first = int(head[0]), 2
+        width, rows = None, 0
+        for lines, counts, toks in _line_blocks(path, f, first):
+            width = int(counts[0]) if width is None and len(counts) else width
+            odd = np.flatnonzero(counts != width)
+            if odd.size or (width is not None and width < min_values):
+                k = int(odd[0]) if odd.size else 0
+                raise ScanFileError(
+                    path,
+                    f"line {lines[k]}: {counts[k]} values, expected "
+                    + (f"{width} like line {first}" if odd.size else f"at least {min_values}"),
+                )
+            _check_values(path, toks, list(lines), [("f", 8)] * (width or 0))
+            rows += len(lines)
+    if declared is not None and declared != rows:
+        raise ScanFileError(path, f"line 1 declares {declared} points, the file holds {rows}")
 
 
 def count_lines(path: Path) -> int:

@@ -20,6 +20,7 @@ class NpyLoader:
 
     def count_points(self, path: Path) -> int:
         """Rows of the stored array (reads the header only)."""
+        _check_magic(path)
         try:
             a = np.load(path, mmap_mode="r", allow_pickle=False)
         except (OSError, ValueError, EOFError) as e:
@@ -27,12 +28,14 @@ class NpyLoader:
         return int(a.shape[0]) if isinstance(a, np.ndarray) and a.ndim >= 1 else 0
 
     def read(self, path: Path) -> RawCloud:
+        _check_magic(path)
         try:
             a = np.load(path, allow_pickle=False)
         except (OSError, ValueError, EOFError) as e:
             raise ScanFileError(path, f"cannot read as a NumPy array ({e})") from e
         if not isinstance(a, np.ndarray) or a.dtype.kind not in "fiu":
-            raise ScanFileError(path, "expected a numeric array")
+            kind = "complex numbers" if a.dtype.kind == "c" else f"dtype {a.dtype}"
+            raise ScanFileError(path, f"expected real coordinates, the array holds {kind}")
         if a.ndim != 2 or a.shape[1] not in (3, 6):
             raise ScanFileError(path, f"expected an (N, 3) or (N, 6) array, got shape {a.shape}")
         a = a.astype(np.float64, copy=False)
@@ -46,3 +49,12 @@ class NpyLoader:
             return RawCloud(points, normals=extra)
         colors = extra / 255.0 if np.nanmax(extra, initial=0.0) > 1.0 else extra
         return RawCloud(points, colors=colors)
+
+
+def _check_magic(path: Path) -> None:
+    """ScanFileError unless the file starts with the .npy magic string (NumPy's own
+    message for any other file speaks of pickled data)."""
+    with path.open("rb") as f:
+        head = f.read(6)
+    if head != b"\x93NUMPY":
+        raise ScanFileError(path, "not a .npy file (no NumPy header)")

@@ -1,9 +1,10 @@
 """PLY, PCD, XYZ / XYZN / XYZRGB and PTS scans, read through Open3D.
 
 Open3D only logs a warning on a bad file and may return a partly filled cloud, so PLY
-and PCD files are first checked against their headers by :mod:`mvreg.io.loaders.checks`
-(streaming; a short, long or corrupt file raises :class:`~mvreg.errors.ScanFileError`
-naming the file and the line).
+and PCD files are first checked against their headers, and text files (XYZ, PTS) line by
+line, by :mod:`mvreg.io.loaders.checks` (streaming; a short, long or corrupt file, a value
+that is not a number or overflows, raises :class:`~mvreg.errors.ScanFileError` naming the
+file and the line).
 """
 
 from __future__ import annotations
@@ -14,7 +15,13 @@ import numpy as np
 
 from mvreg.errors import ScanFileError
 from mvreg.io.loaders.base import RawCloud
-from mvreg.io.loaders.checks import check_pcd, check_ply, count_lines, declared_points
+from mvreg.io.loaders.checks import (
+    check_pcd,
+    check_ply,
+    check_text,
+    count_lines,
+    declared_points,
+)
 
 
 class Open3DLoader:
@@ -38,6 +45,8 @@ class Open3DLoader:
                 check_ply(path)
             elif suffix == ".pcd":
                 sensor_origin = check_pcd(path)
+            else:
+                check_text(path, 3 if suffix in (".xyz", ".pts") else 6, suffix == ".pts")
         except OSError as e:
             raise ScanFileError(path, f"cannot read file ({e.strerror or e})") from e
         with o3d.utility.VerbosityContextManager(o3d.utility.VerbosityLevel.Error):

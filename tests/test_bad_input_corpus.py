@@ -26,7 +26,9 @@ def good_folder(tmp: Path) -> Path:
 
 
 def digest(folder: Path) -> dict[str, str]:
-    return {p.name: hashlib.sha256(p.read_bytes()).hexdigest() for p in folder.iterdir() if p.is_file()}
+    return {
+        p.name: hashlib.sha256(p.read_bytes()).hexdigest() for p in folder.iterdir() if p.is_file()
+    }
 
 
 def one_error_line(out: str, *needles: str) -> None:
@@ -103,3 +105,144 @@ def test_make_problem_too_large_is_refused_before_allocating(tmp_path):
     with pytest.raises(InputError, match="--patches"):
         make_problem(10**9, nodes_per_pair=20)
 
+
+# ---------------------------------------------------------------- headers and text files
+def _rows(k: int = 300, cols: int = 3) -> list[str]:
+    return [" ".join(f"{v:.5f}" for v in GOOD[i % len(GOOD), :cols]) for i in range(k)]
+
+
+def _ply(props: str, rows: list[str], version: str = "1.0") -> bytes:
+    head = f"ply\nformat ascii {version}\nelement vertex {len(rows)}\n{props}end_header\n"
+    return (head + "\n".join(rows) + "\n").encode()
+
+
+XYZ3 = "property float x\nproperty float y\nproperty float z\n"
+FILE_CASES = {
+    "ply-missing-z": (
+        "m.ply",
+        _ply("property float x\nproperty float y\n", _rows(cols=2)),
+        "no z property",
+    ),
+    "ply-duplicate-x": (
+        "d.ply",
+        _ply("property float x\nproperty float x\nproperty float z\n", _rows()),
+        "'x' of vertex declared twice",
+    ),
+    "ply-version-2": ("v.ply", _ply(XYZ3, _rows(), "2.0"), "unsupported PLY version '2.0'"),
+    "xyz-1e999": ("t.xyz", ("\n".join(_rows()[:9] + ["1 1e999 2"]) + "\n").encode(), "line 10"),
+    "xyz-inf": ("t.xyz", ("\n".join(["inf 0 0"] + _rows())).encode(), "line 1: value 'inf'"),
+    "xyz-comma": ("t.xyz", b"1,2,3\n" * 300, "line 1"),
+    "xyz-header-line": (
+        "t.xyz",
+        ("x y z\n" + "\n".join(_rows())).encode(),
+        "line 1: value 'x' is not a number",
+    ),
+    "xyz-ragged": ("t.xyz", ("\n".join(_rows()[:20] + ["1 2"] + _rows())).encode(), "line 21"),
+    "xyzn-three-columns": ("t.xyzn", ("\n".join(_rows())).encode(), "at least 6"),
+    "pts-count-too-high": ("t.pts", ("500\n" + "\n".join(_rows())).encode(), "declares 500"),
+    "pts-count-too-low": ("t.pts", ("10\n" + "\n".join(_rows())).encode(), "holds 300"),
+    "pts-no-count": ("t.pts", ("\n".join(_rows())).encode(), "not a number of points"),
+    "npy-text": ("t.npy", ("\n".join(_rows())).encode(), "not a .npy file"),
+}
+
+
+@pytest.mark.parametrize("cid", sorted(FILE_CASES))
+def test_misdeclared_files_are_refused_naming_file_and_reason(tmp_path, cid):
+    name, data, needle = FILE_CASES[cid]
+    d = good_folder(tmp_path)
+    (d / name).write_bytes(data)
+    r = runner.invoke(app, register_args(tmp_path, d))
+    assert r.exit_code == 2, r.output
+    one_error_line(r.output, name, needle)
+
+
+def test_complex_npy_is_named_as_complex(tmp_path):
+    d = good_folder(tmp_path)
+    np.save(d / "c.npy", GOOD.astype(complex))
+    r = runner.invoke(app, register_args(tmp_path, d))
+    assert r.exit_code == 2, r.output
+    one_error_line(r.output, "c.npy", "complex numbers")
+
+
+@pytest.mark.parametrize("suffix", [".xyz", ".pts"])
+def test_valid_text_scans_with_nan_rows_still_load(tmp_path, suffix):
+    """NaN rows are dropped and counted (organised scans mark missing returns so)."""
+    from mvreg.io.loaders import load_scan
+
+    rows = _rows(cols=3)
+    rows[5] = "nan nan nan"
+    text = "\n".join(rows) + "\n"
+    path = tmp_path / f"s{suffix}"
+    path.write_text(f"{len(rows)}\n{text}" if suffix == ".pts" else text)
+    scan = load_scan(path)
+    assert scan.num_points == 299 and scan.num_dropped_nonfinite == 1
+    assert np.allclose(scan.points[0], GOOD[0], atol=1e-5)
+
+
+# ---------------------------------------------------------------- outputs
+def test_a_recording_cut_short_by_a_full_disk_is_an_error_naming_it(tmp_path, monkeypatch):
+    """rerun's file sink only logs a failed write; the recorder checks the file system."""
+    import os
+
+    from mvreg.io.atomic import OutputWriteError
+    from mvreg.viz import make_recorder
+
+    rrd = tmp_path / "rec.rrd"
+    rec = make_recorder(rrd)
+    real = os.statvfs
+
+    class Full:
+        def __init__(self, st):
+            self.f_frsize, self.f_blocks, self.f_bavail = st.f_frsize, st.f_blocks, 0
+
+    monkeypatch.setattr(os, "statvfs", lambda p: Full(real(p)))
+    with pytest.raises(OutputWriteError, match="rec.rrd: cannot write"):
+        rec.close()
+    assert not rrd.exists() and list(tmp_path.iterdir()) == []
+
+
+def test_real_full_disk_while_recording(tmp_path):
+    """A tmpfs that holds poses and report but not the recording: exit 4 naming it."""
+    import subprocess
+
+    mnt = tmp_path / "mnt"
+    mnt.mkdir()
+    r = subprocess.run(["mount", "-t", "tmpfs", "-o", "size=24k", "tmpfs", str(mnt)],
+                       capture_output=True)  # fmt: skip
+    if r.returncode != 0:
+        pytest.skip("cannot mount a tmpfs here")
+    try:
+        d = good_folder(tmp_path)
+        r = runner.invoke(app, ["register", str(d), "--out", str(mnt / "o")])
+        assert r.exit_code == 4, r.output
+        one_error_line(r.output, "cannot write", "No space left on device")
+        assert "ERROR" not in r.output
+        assert [p.name for p in mnt.iterdir()] == []
+    finally:
+        subprocess.run(["umount", str(mnt)], check=False)
+
+
+def test_out_under_a_file_names_out_not_the_staging_folder(tmp_path):
+    d = good_folder(tmp_path)
+    (tmp_path / "afile").write_text("x")
+    out = tmp_path / "afile" / "out"
+    r = runner.invoke(app, ["register", str(d), "--out", str(out), "--no-rrd"])
+    assert r.exit_code in (2, 4), r.output
+    one_error_line(r.output, str(out))
+    assert "mvreg-tmp" not in r.output
+
+
+def test_dangling_ground_truth_link_is_named(tmp_path):
+    d = good_folder(tmp_path)
+    (d / "ground_truth.json").symlink_to(tmp_path / "nowhere.json")
+    r = runner.invoke(app, register_args(tmp_path, d))
+    assert r.exit_code == 2, r.output
+    one_error_line(r.output, "ground_truth.json", "dangling symbolic link")
+
+
+def test_ground_truth_of_another_format_says_which(tmp_path):
+    d = good_folder(tmp_path)
+    (d / "ground_truth.json").write_text('{"format": "mvreg.poses/9", "poses": {}}')
+    r = runner.invoke(app, register_args(tmp_path, d))
+    assert r.exit_code == 2, r.output
+    one_error_line(r.output, "ground_truth.json", "'mvreg.poses/9'")

@@ -60,7 +60,8 @@ def test_one_usable_scan_left_is_still_an_error(tmp_path):
     (d / "few.ply").write_bytes(ply_with(ascii_rows(20)))
     r = runner.invoke(app, register_args(tmp_path, d))
     assert r.exit_code == 2, r.output
-    assert "needs at least 2 scans, found 1 (1 more with too few points: few.ply)" in r.output
+    assert "needs at least 2 scans, found 1 (1 more with fewer than min_points = " in r.output
+    assert " points: few.ply)" in r.output
     assert not (tmp_path / "out" / "poses.json").exists()
 
 

@@ -61,6 +61,9 @@ def main(
 ):
     """mvreg: register many partial 3D scans into one frame, globally (REG-ADMM)."""
     STATE["debug"] = debug
+    # rerun's native log (a failed file sink, ...) would add multi-line noise to stderr:
+    # mvreg reports those failures itself, one line naming the file. RUST_LOG=warn shows it.
+    os.environ.setdefault("RUST_LOG", "off" if not debug else "warn")
 
 
 for _sub in (_register_cmds.app, _solve_cmds.app):

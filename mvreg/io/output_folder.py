@@ -163,10 +163,13 @@ class OutputFolder:
     # ---------------------------------------------------------------- protocol
     def __enter__(self) -> Path:
         self.check()
-        self.out.parent.mkdir(parents=True, exist_ok=True)
-        self.remove_stale()
-        _remove(self.staging)
-        self.staging.mkdir()
+        try:
+            self.out.parent.mkdir(parents=True, exist_ok=True)
+            self.remove_stale()
+            _remove(self.staging)
+            self.staging.mkdir()
+        except OSError as e:  # read-only or missing place: name OUT, not the staging
+            raise OutputWriteError(self.shown, e.strerror or str(e)) from e
         return self.staging
 
     def __exit__(self, exc_type, exc, tb) -> bool:

@@ -96,13 +96,17 @@ def read_poses_json(path: str | os.PathLike, dim: int | None = 3) -> dict[str, n
     try:
         data = json.loads(path.read_text())
     except FileNotFoundError:
-        raise InputError(f"{path}: no such file") from None
+        dangling = path.is_symlink()
+        why = "dangling symbolic link" if dangling else "no such file"
+        raise InputError(f"{path}: {why}") from None
     except (OSError, UnicodeDecodeError, json.JSONDecodeError) as e:
         raise InputError(f"{path}: not a readable JSON file ({e})") from None
     except RecursionError:
         raise InputError(f"{path}: JSON nested too deeply") from None
     if not isinstance(data, dict) or data.get("format") != POSES_FORMAT:
-        raise InputError(f"{path}: not an {POSES_FORMAT} file (missing 'format')")
+        found = data.get("format") if isinstance(data, dict) else None
+        why = "missing 'format'" if found is None else f"its 'format' is {str(found)[:60]!r}"
+        raise InputError(f"{path}: not an {POSES_FORMAT} file ({why})")
     raw = data.get("poses", {})
     if not isinstance(raw, dict):
         raise InputError(f"{path}: 'poses' is not an object of name -> matrix")

@@ -55,7 +55,10 @@ def load_source(
         out.scans = [drop_far_strays(s, min_points) for s in out.scans]
     if len(out.scans) < 2:
         left_out = [s["scan"] for s in out.skipped if "scan" in s]
-        extra = f" ({len(left_out)} more with too few points: {', '.join(left_out)})"
+        extra = (
+            f" ({len(left_out)} more with fewer than min_points = {min_points} points: "
+            f"{', '.join(left_out[:8])}{', ...' if len(left_out) > 8 else ''})"
+        )
         raise InputError(
             f"{source}: {what} needs at least 2 scans, found {len(out.scans)}"
             + (extra if left_out else "")
@@ -210,8 +213,9 @@ def _load_folder(folder: Path, min_points, max_points, truth, prog) -> Loaded:
             scans += out
             rejected += left
             prog.advance()
-    if truth is None and (folder / "ground_truth.json").exists():
-        truth = read_poses_json(folder / "ground_truth.json")
+    gt = folder / "ground_truth.json"
+    if truth is None and (gt.exists() or gt.is_symlink()):  # a dangling link is an error
+        truth = read_poses_json(gt)
     left_out = [
         {"file": display_path(Path(e.path).name), "reason": e.reason, "scan": e.scan}
         for e in rejected

@@ -332,6 +332,7 @@ class Recorder(NullRecorder):
             self._rec.flush()
             self._rec.disconnect()  # drops the file sink, which writes the footer
             if self._tmp_path is not None:
+                _check_not_cut_by_full_disk(self._tmp_path, self.rrd_path)
                 os.replace(self._tmp_path, self.rrd_path)
                 logger.info("recording written to %s", self.rrd_path)
         except BaseException:
@@ -459,6 +460,16 @@ def make_recorder(
         return NullRecorder(warnings)
     recording.set_sinks(*sinks)
     return Recorder(recording, rrd_path=rrd_path, tmp_path=tmp_path, warnings=warnings, **options)
+
+
+def _check_not_cut_by_full_disk(tmp_path: Path, rrd_path: Path) -> None:
+    """OutputWriteError naming ``rrd_path`` when its file system is full: rerun's file sink
+    only logs a failed write (the file is then cut short), it raises nothing."""
+    from mvreg.io.atomic import OutputWriteError
+
+    st = os.statvfs(tmp_path.parent)
+    if st.f_bavail * st.f_frsize < 4096 and st.f_blocks > 0:
+        raise OutputWriteError(rrd_path, "No space left on device")
 
 
 def find_viewer_executable() -> str | None:

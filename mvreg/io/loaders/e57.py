@@ -26,7 +26,13 @@ def _open(path: Path):
     try:
         return pye57.E57(str(path))
     except Exception as e:  # noqa: BLE001 - libE57 raises its own exception types
-        raise ScanFileError(path, f"not a readable E57 file ({e})") from e
+        raise ScanFileError(path, f"not a readable E57 file ({_first_line(e)})") from e
+
+
+def _first_line(e: Exception) -> str:
+    """libE57's message without the debug dump it appends on further lines."""
+    lines = [ln.strip() for ln in str(e).splitlines() if ln.strip()]
+    return lines[0].rstrip("(").strip() if lines else type(e).__name__
 
 
 def _points(data: dict) -> np.ndarray:
@@ -55,7 +61,7 @@ def _one_scan(path: Path, e57, k: int, name: str) -> RawCloud:
         header = e57.get_header(k)
         hint = _hint(header)
     except Exception as e:  # noqa: BLE001 - libE57 raises its own exception types
-        raise ScanFileError(path, f"scan {k} is not readable ({e})") from e
+        raise ScanFileError(path, f"scan {k} is not readable ({_first_line(e)})") from e
     colors = None
     if all(c in data for c in ("colorRed", "colorGreen", "colorBlue")):
         rgb = np.column_stack([data["colorRed"], data["colorGreen"], data["colorBlue"]])

@@ -246,3 +246,22 @@ def test_ground_truth_of_another_format_says_which(tmp_path):
     r = runner.invoke(app, register_args(tmp_path, d))
     assert r.exit_code == 2, r.output
     one_error_line(r.output, "ground_truth.json", "'mvreg.poses/9'")
+
+
+# ---------------------------------------------------------------- sequences
+def test_sequence_warnings_reach_the_terminal(tmp_path):
+    """A timestamps.txt that does not fit the frames is named on stderr, not only in the
+    report; mvreg synth's own ground_truth_tum.txt is a known sidecar (no warning)."""
+    seq = tmp_path / "seq"
+    r = runner.invoke(
+        app,
+        ["synth", "builtin", "--out", str(seq), "--sequence", "--views", "12",
+         "--points-per-scan", "2000", "--seed", "1"],
+    )  # fmt: skip
+    assert r.exit_code == 0, r.output
+    (seq / "timestamps.txt").write_text("0.0\n0.1\n0.2\n")
+    r = runner.invoke(app, register_args(tmp_path, seq, "--sequence"))
+    assert r.exit_code in (0, 3), r.output
+    warnings = [ln for ln in r.output.splitlines() if ln.startswith("mvreg: warning")]
+    assert any("timestamps.txt" in w and "12 scans" in w for w in warnings), r.output
+    assert not any("ground_truth_tum.txt" in w for w in warnings), r.output

@@ -165,6 +165,8 @@ def register_folder(
     for s in reg.rejected_scans:
         scan = "" if s["scan"] == s["file"] else f" (scan {s['scan']})"
         typer.echo(f"mvreg: warning: {s['file']}{scan}: not registered: {s['reason']}", err=True)
+    for w in (getattr(reg, "sequence", None) or {}).get("warnings", []):
+        typer.echo(f"mvreg: warning: {w}", err=True)
     summary_table(reg)
     typer.echo(
         f"wrote {', '.join(str(p) for p in written)}"

@@ -10,9 +10,9 @@ dropped and counted in ``Scan.num_dropped_nonfinite``.
 
     listing = scan_folder("scans/")         # ScanListing(files, skipped)
 
-Known sidecar files (``ground_truth.json``, ``timestamps.txt``, ``synth.json``,
-``README*``, ``*.md``, ``*.conf``, mvreg's own outputs) and hidden files are ignored
-silently; any other file is returned in ``ScanListing.skipped`` with the reason, for the
+Known sidecar files (``ground_truth.json``, ``ground_truth_tum.txt``, ``timestamps.txt``,
+``synth.json``, ``README*``, ``*.md``, ``*.conf``, mvreg's own outputs) and hidden files
+are ignored silently; any other file is returned in ``ScanListing.skipped`` with the reason, for the
 caller to warn about and report.
 """
 
@@ -174,6 +174,7 @@ def load_scan(
 
 _SIDECAR_NAMES = {
     "ground_truth.json",
+    "ground_truth_tum.txt",  # mvreg synth --sequence
     "timestamps.txt",
     "synth.json",
     "poses.json",

@@ -265,3 +265,11 @@ def test_sequence_warnings_reach_the_terminal(tmp_path):
     warnings = [ln for ln in r.output.splitlines() if ln.startswith("mvreg: warning")]
     assert any("timestamps.txt" in w and "12 scans" in w for w in warnings), r.output
     assert not any("ground_truth_tum.txt" in w for w in warnings), r.output
+
+
+# ---------------------------------------------------------------- options
+def test_voxel_larger_than_the_scans_names_the_option(tmp_path):
+    d = good_folder(tmp_path)
+    r = runner.invoke(app, register_args(tmp_path, d, "--voxel-size", "1e9"))
+    assert r.exit_code == 2, r.output
+    one_error_line(r.output, "voxel_size 1e+09 is too large", "use at most")

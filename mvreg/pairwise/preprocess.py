@@ -256,11 +256,22 @@ def check_voxel_size(voxel_size: float) -> float:
 # A given voxel below this share of the scans' median point spacing downsamples nothing and
 # leaves each FPFH neighbourhood a handful of points: refused rather than run for nothing.
 MIN_VOXEL_SPACINGS = 0.1
+# A given voxel above this share of the scans' median diagonal leaves each scan a few dozen
+# points at most (a surface is about (diagonal / voxel)^2 voxels): nothing to match.
+MAX_VOXEL_DIAGONAL = 0.2
 
 
 def check_given_voxel(voxel: float, scans: Sequence[Scan], executor: Executor | int = 2):
     """ConfigError naming the value when a given voxel is absurd for the data: far below
-    the scans' median point spacing (every point its own voxel)."""
+    the scans' median point spacing (every point its own voxel), or above
+    ``MAX_VOXEL_DIAGONAL`` times their median diagonal (a handful of points per scan)."""
+    diagonal = float(np.median([np.linalg.norm(np.ptp(s.points, axis=0)) for s in scans]))
+    if voxel > MAX_VOXEL_DIAGONAL * diagonal:
+        raise ConfigError(
+            f"voxel_size {voxel:.3g} is too large for scans of median diagonal {diagonal:.3g} "
+            f"(data units): use at most {MAX_VOXEL_DIAGONAL * diagonal:.3g}, or leave it out "
+            "to derive it from the data"
+        )
     labels = [f"scan {s.name}" for s in scans]
     spacing = float(
         np.median(map_shared(make_executor(executor), scan_spacing, None, scans, labels=labels))

@@ -626,8 +626,8 @@ def classify_stderr(text: str):
             continue
         if s.startswith("mvreg: error:") or s.startswith("Error:"):
             errors.append(s)
-        elif s.startswith("mvreg: warning:") or s.startswith("warning:"):
-            warns.append(s)
+        elif s.startswith(("mvreg: warning:", "warning:", "mvreg: ")):
+            warns.append(s)  # mvreg's own one-line messages (warnings, "mvreg: interrupted")
         elif s[0] in BOX or re.fullmatch(r"mvreg \w[\w -]*", s):
             continue  # the summary table
         elif s.startswith("wrote ") or re.match(r"^\S.*━", s):

@@ -554,7 +554,11 @@ def run_case(case: Case, fx: dict, tmp_root: Path, keep: bool = False) -> dict:
         run = run_cmd([MVREG, *argv], work, case.timeout, case.signal)
         rec["exit"] = run.rc
         rec["seconds"] = round(run.seconds, 2)
-        rec["stderr_head"] = [ln for ln in run.stderr.splitlines() if ln.strip()][:6]
+        rec["stderr_head"] = [
+            ln[:500] + (f" ... [{len(ln)} chars]" if len(ln) > 500 else "")
+            for ln in run.stderr.splitlines()
+            if ln.strip()
+        ][:6]
         levels = grade(case, ctx, run, before_in, before_parent, before_out, out_parent)
         if case.followup:
             levels += followup_check(case, ctx, argv, out_parent, before_parent)
@@ -589,8 +593,11 @@ def run_case(case: Case, fx: dict, tmp_root: Path, keep: bool = False) -> dict:
 def _force_rmtree(p: Path) -> None:
     for dirpath, dirnames, _ in os.walk(p):
         for d in dirnames:
+            q = Path(dirpath) / d
+            if q.is_symlink():
+                continue
             try:
-                os.chmod(Path(dirpath) / d, 0o755, follow_symlinks=False)
+                os.chmod(q, 0o755)
             except OSError:
                 pass
     try:

@@ -93,18 +93,27 @@ def icp_point_to_plane(
 
 def _plane_step(p: np.ndarray, target: np.ndarray, n: np.ndarray) -> np.ndarray | None:
     """The (6,) Gauss-Newton step (rotation vector, translation) moving points ``p`` onto
-    the planes through ``target`` with normals ``n``; None when singular."""
+    the planes through ``target`` with normals ``n``; None when singular.
+
+    Solved for a turn about the points' centroid with the lever arms divided by their
+    RMS length, so rotation and translation columns have the same scale whatever the
+    units and the distance from the origin (the damping is relative to them); returned
+    as the same motion about the origin."""
     r = np.einsum("ij,ij->i", p - target, n)
+    c = p.mean(0)
+    arm = p - c
+    scale = float(np.sqrt(np.mean(np.einsum("ij,ij->i", arm, arm)))) + 1e-300
+    arm /= scale
     a = np.empty((len(p), 6))
-    a[:, 0] = p[:, 1] * n[:, 2] - p[:, 2] * n[:, 1]
-    a[:, 1] = p[:, 2] * n[:, 0] - p[:, 0] * n[:, 2]
-    a[:, 2] = p[:, 0] * n[:, 1] - p[:, 1] * n[:, 0]
+    a[:, :3] = np.cross(arm, n)
     a[:, 3:] = n
     ata = a.T @ a
     try:
-        return np.linalg.solve(ata + 1e-12 * np.trace(ata) * np.eye(6), -a.T @ r)
+        x = np.linalg.solve(ata + 1e-12 * np.trace(ata) * np.eye(6), -a.T @ r)
     except np.linalg.LinAlgError:
         return None
+    w = x[:3] / scale  # p -> R (p - c) + c + u, as R p + (c - R c + u)
+    return np.concatenate([w, c - rotation_from_vector(w) @ c + x[3:]])
 
 
 def coarse_icp(

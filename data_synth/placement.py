@@ -17,6 +17,8 @@ import numpy as np
 from mvreg.errors import ConfigError
 
 PLACEMENTS = ("sphere", "turntable", "random", "explicit")
+MAX_DISTANCE = 1000.0
+"""Largest sensor distance, in object diagonals (beyond it the object is a few pixels)."""
 
 
 @dataclass
@@ -67,7 +69,8 @@ def make_viewpoints(
     Returns:
         :class:`Viewpoints`.
     Raises:
-        ConfigError: unknown placement, views < 1, distance <= 0.5 (inside the object),
+        ConfigError: unknown placement, views < 1, distance <= 0.5 (inside the object) or
+            > MAX_DISTANCE, elevation outside [-90, 90] degrees,
             bad explicit positions.
     """
     centre = np.asarray(centre, dtype=np.float64)
@@ -79,10 +82,13 @@ def make_viewpoints(
     if placement != "explicit":
         if views < 1:
             raise ConfigError(f"views must be >= 1, not {views}")
-        if not (np.isfinite(distance) and distance > 0.5):
+        if not (np.isfinite(distance) and 0.5 < distance <= MAX_DISTANCE):
             raise ConfigError(
-                f"distance must be > 0.5 object diagonals (outside the object), not {distance}"
+                f"distance must be in (0.5, {MAX_DISTANCE:g}] object diagonals (the sensor "
+                f"outside the object, not absurdly far), not {distance}"
             )
+        if not (np.isfinite(elevation_deg) and -90.0 <= elevation_deg <= 90.0):
+            raise ConfigError(f"elevation must be in [-90, 90] degrees, not {elevation_deg}")
     radius = distance * diagonal
     rolls = np.zeros(max(views, 0))
     if placement == "sphere":

@@ -273,3 +273,108 @@ def test_voxel_larger_than_the_scans_names_the_option(tmp_path):
     r = runner.invoke(app, register_args(tmp_path, d, "--voxel-size", "1e9"))
     assert r.exit_code == 2, r.output
     one_error_line(r.output, "voxel_size 1e+09 is too large", "use at most")
+
+
+@pytest.mark.parametrize("fmt", ["ascii", "binary_little_endian", "binary_big_endian"])
+def test_ply_with_a_header_line_too_long_for_open3d_is_read_by_numpy(tmp_path, fmt):
+    """RPly (Open3D) aborts the process on a ~1 KB header line; NumPy reads those files."""
+    from mvreg.io.loaders import load_scan
+
+    pts = GOOD[:200] + [1.0, 2.0, 3.0]
+    rgb = (np.arange(600).reshape(200, 3) % 256).astype(np.uint8)
+    head = (
+        f"ply\nformat {fmt} 1.0\ncomment {'c' * 5000}\nelement vertex 200\n"
+        "property double x\nproperty double y\nproperty double z\n"
+        "property uchar red\nproperty uchar green\nproperty uchar blue\nend_header\n"
+    ).encode()
+    if fmt == "ascii":
+        rows = zip(pts, rgb, strict=True)
+        body = "".join(f"{x:.17g} {y:.17g} {z:.17g} {r} {g} {b}\n" for (x, y, z), (r, g, b) in rows)
+        body = body.encode()
+    else:
+        o = "<" if fmt == "binary_little_endian" else ">"
+        rows = np.empty(200, [("p", f"{o}f8", 3), ("c", "u1", 3)])
+        rows["p"], rows["c"] = pts, rgb
+        body = rows.tobytes()
+    (tmp_path / "long.ply").write_bytes(head + body)
+    scan = load_scan(tmp_path / "long.ply")
+    assert np.array_equal(scan.points, pts)
+    assert np.allclose(scan.colors, rgb / 255.0)
+
+
+def _cli_cases(tmp: Path) -> dict[str, tuple[list[str], tuple[str, ...]]]:
+    d = good_folder(tmp)
+    (tmp / "bad.yaml").write_text("a: [1, 2\nb: {\n")
+    out = ["--out", str(tmp / "out"), "--no-rrd"]
+    p = tmp / "p.npz"
+    runner.invoke(app, ["make-problem", "--patches", "10", "--degree", "3", "--out", str(p)])
+    return {
+        "refine-1e6": (["register", str(d), *out, "--refine", "1000000"], ("refine.rounds",)),
+        "ransac-1e12": (
+            ["register", str(d), *out, "--set", "align.ransac_max_iterations=1000000000000"],
+            ("align.ransac_max_iterations",),
+        ),
+        "threads-1e5": (["register", str(d), *out, "--threads", "100000"], ("threads",)),
+        "config-yaml-broken": (
+            ["register", str(d), *out, "--config", str(tmp / "bad.yaml")],
+            ("bad.yaml", "not valid YAML (line 2"),
+        ),
+        "synth-distance-1e12": (
+            ["synth", "builtin", "--out", str(tmp / "s"), "--distance", "1e12"],
+            ("distance must be in (0.5, 1000]",),
+        ),
+        "synth-elevation-nan": (
+            ["synth", "builtin", "--out", str(tmp / "s"), "--elevation", "nan"],
+            ("elevation must be in [-90, 90]",),
+        ),
+        "make-problem-degree-1e9": (
+            ["make-problem", "--degree", "1000000000", "--out", str(tmp / "q.npz")],
+            ("--degree 1000000000", "99 others"),
+        ),
+        "make-problem-nodes-1e9": (
+            ["make-problem", "--nodes-per-pair", "1000000000", "--out", str(tmp / "q.npz")],
+            ("--nodes-per-pair 1000000000", "GiB"),
+        ),
+        "rrd-is-a-result-file": (
+            ["register", str(d), "--out", str(tmp / "out"), "--rrd", str(tmp / "out/poses.json")],
+            ("--rrd", "poses.json"),
+        ),
+        "solve-out-is-input": (
+            ["solve", str(p), "--out", str(p), "--force"],
+            ("--out", "is the input"),
+        ),
+    }
+
+
+CLI_CASE_IDS = [
+    "refine-1e6", "ransac-1e12", "threads-1e5", "config-yaml-broken", "synth-distance-1e12",
+    "synth-elevation-nan", "make-problem-degree-1e9", "make-problem-nodes-1e9",
+    "rrd-is-a-result-file", "solve-out-is-input",
+]  # fmt: skip
+
+
+@pytest.mark.parametrize("cid", CLI_CASE_IDS)
+def test_absurd_options_are_refused_up_front_naming_them(tmp_path, cid):
+    args, needles = _cli_cases(tmp_path)[cid]
+    before = {p: p.read_bytes() for p in tmp_path.rglob("*") if p.is_file()}
+    r = runner.invoke(app, args)
+    assert r.exit_code == 2, r.output
+    one_error_line(r.output, *needles)
+    assert {p: p.read_bytes() for p in tmp_path.rglob("*") if p.is_file()} == before
+    assert not (tmp_path / "out").exists() and not (tmp_path / "s").exists()
+
+
+def test_make_problem_negative_seed_is_a_usage_error(tmp_path):
+    r = runner.invoke(app, ["make-problem", "--seed", "-1", "--out", str(tmp_path / "p.npz")])
+    assert r.exit_code == 2 and "Traceback" not in r.output, r.output
+    assert not (tmp_path / "p.npz").exists()
+
+
+def test_merged_laz_of_a_previous_run_is_mvregs_own(tmp_path):
+    from mvreg.io.output_folder import OutputFolder
+
+    out = tmp_path / "out"
+    out.mkdir()
+    (out / "poses.json").write_text("{}")
+    (out / "merged.laz").write_bytes(b"old")
+    OutputFolder(out, force=True).check()  # no "files mvreg did not write"

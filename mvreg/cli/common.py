@@ -130,11 +130,16 @@ def config_from(path: Path | None, sets: list[str] | None, **named):
     return load_config(path, **{**parse_sets(sets), **given})
 
 
-def check_out_file(path: Path, force: bool):
+def check_out_file(path: Path, force: bool, inputs: tuple[Path, ...] = ()):
+    """Refuse an --out file that is a folder, one of the ``inputs`` (even with --force),
+    or exists without ``force``."""
     from mvreg.errors import InputError, OutputExistsError
 
     if not str(path) or path.is_dir():
         raise InputError(f"{path or repr('')}: is a folder; --out must name a file")
+    for inp in inputs:
+        if path.resolve() == Path(inp).resolve():
+            raise InputError(f"--out {path}: is the input {inp}; choose another file")
     if path.exists() and not force:
         raise OutputExistsError(f"{path} exists (use --force to overwrite)")
 

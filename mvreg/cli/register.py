@@ -95,9 +95,11 @@ def register(
     run_guarded(_run)
 
 
-def check_rrd_path(rrd: Path, folder, force: bool) -> None:
-    """Refuse a --rrd that would overwrite an input (even with --force) or a folder."""
+def check_rrd_path(rrd: Path, folder, out, force: bool) -> None:
+    """Refuse a --rrd that would overwrite an input or another result in OUT (even with
+    --force), or a folder."""
     from mvreg.errors import InputError, OutputExistsError
+    from mvreg.io.output_folder import RESULT_FILES
 
     if not str(rrd).strip():
         raise InputError("--rrd '': give a file name")
@@ -106,6 +108,9 @@ def check_rrd_path(rrd: Path, folder, force: bool) -> None:
     target, inp = rrd.resolve(), Path(folder).resolve()
     if target == inp or inp in target.parents:
         raise InputError(f"--rrd {rrd}: is inside the input folder {folder}; choose another")
+    if target.parent == Path(out).resolve() and target.name in RESULT_FILES:
+        if target.name != "recording.rrd":
+            raise InputError(f"--rrd {rrd}: is the result file {target.name} of --out {out}")
     if rrd.exists() and not force:
         raise OutputExistsError(f"{rrd} exists (use --force to overwrite)")
 
@@ -136,7 +141,7 @@ def register_folder(
     output = OutputFolder(out, force=force, inputs=[folder])
     output.check()  # refuse before spending time
     if rrd is not None and not no_rrd:
-        check_rrd_path(Path(rrd), folder, force)
+        check_rrd_path(Path(rrd), folder, out, force)
     with output as staging:  # written into staging, swapped in on success
         rrd_path = None if no_rrd else output.staged(rrd or staging / "recording.rrd")
         rec = make_recorder(rrd_path, spawn=spawn, recording_id=f"mvreg-{cfg.seed}")

@@ -70,7 +70,7 @@ def solve(
                 "seed": seed,
             },
         )
-        check_out_file(out, force)
+        check_out_file(out, force, inputs=(problem,))
         prob = load_problem(problem)
         res = solve_problem(prob, cfg.solve, seed=cfg.seed)
         write_poses_json(
@@ -110,7 +110,7 @@ def make_problem_cmd(
     outliers: Annotated[
         float, typer.Option(min=0.0, max=1.0, help="Fraction of outlier observations.")
     ] = 0.0,
-    seed: Annotated[int, typer.Option()] = 0,
+    seed: Annotated[int, typer.Option(min=0)] = 0,
     force: Annotated[bool, typer.Option(help="Overwrite an existing file.")] = False,
 ):
     """Write a synthetic patch problem (and its ground truth beside it)."""

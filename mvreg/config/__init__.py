@@ -54,7 +54,9 @@ class RegisterConfig(BaseModel):
     model_config = ConfigDict(extra="forbid")
 
     seed: int = Field(0, ge=0, description="same seed, same poses")
-    threads: int = Field(2, ge=1, description="in-process threads for per-scan and per-pair work")
+    threads: int = Field(
+        2, ge=1, le=1024, description="in-process threads for per-scan and per-pair work"
+    )
     workers: int | None = Field(
         None,
         ge=1,
@@ -92,6 +94,26 @@ class RegisterConfig(BaseModel):
         return scheduler
 
 
+def _parse_config(path: Path, text: str):
+    """The JSON (or YAML, by suffix) text of a config file; ConfigError in one line."""
+    if path.suffix.lower() not in (".yaml", ".yml"):
+        try:
+            return json.loads(text)
+        except (ValueError, TypeError, RecursionError) as e:
+            raise ConfigError(f"{path}: not valid JSON ({e})") from None
+    try:
+        import yaml
+    except ImportError:
+        raise ConfigError(f"{path}: YAML needs PyYAML; use JSON instead") from None
+    try:
+        return yaml.safe_load(text) or {}
+    except (yaml.YAMLError, ValueError, TypeError, RecursionError) as e:
+        mark = getattr(e, "problem_mark", None)
+        where = f"line {mark.line + 1}, column {mark.column + 1}: " if mark else ""
+        what = getattr(e, "problem", None) or str(e).splitlines()[0]
+        raise ConfigError(f"{path}: not valid YAML ({where}{what})") from None
+
+
 def load_config(
     path: str | Path | None = None, base: RegisterConfig | None = None, **overrides
 ) -> RegisterConfig:
@@ -110,17 +132,7 @@ def load_config(
             text = path.read_text()
         except OSError as e:
             raise ConfigError(f"{path}: cannot read config ({e.strerror})") from None
-        try:
-            if path.suffix.lower() in (".yaml", ".yml"):
-                try:
-                    import yaml
-                except ImportError:
-                    raise ConfigError(f"{path}: YAML needs PyYAML; use JSON instead") from None
-                data = yaml.safe_load(text) or {}
-            else:
-                data = json.loads(text)
-        except (ValueError, TypeError) as e:
-            raise ConfigError(f"{path}: not valid JSON/YAML ({e})") from None
+        data = _parse_config(path, text)
         if not isinstance(data, dict):
             raise ConfigError(f"{path}: the config must be a mapping of stage -> settings")
     for key, value in overrides.items():

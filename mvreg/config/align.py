@@ -20,12 +20,14 @@ class AlignConfig(BaseModel):
         1.0, ge=0, description="approximate descriptor search (0 = exact)"
     )
     ransac_backend: Literal["numpy", "open3d"] = "numpy"
-    ransac_max_iterations: int = Field(4000, ge=1)
+    ransac_max_iterations: int = Field(4000, ge=1, le=400_000)
     ransac_confidence: float = Field(0.999, gt=0, lt=1)
     ransac_distance_voxels: float = Field(1.5, gt=0, description="RANSAC inlier distance / v")
     ransac_edge_length_ratio: float = Field(0.9, gt=0, lt=1)
     ransac_normal_angle_deg: float = Field(30.0, gt=0, le=180)
-    ransac_validate_top: int = Field(8, ge=1, description="hypotheses re-ranked on the scans")
+    ransac_validate_top: int = Field(
+        8, ge=1, le=1000, description="hypotheses re-ranked on the scans"
+    )
     ransac_guided: bool = Field(
         False,
         description="pairwise RANSAC: when plain draws stop short of the confidence, as many "
@@ -33,17 +35,20 @@ class AlignConfig(BaseModel):
         "scans on the model always does)",
     )
     ransac_hypotheses_tried: int = Field(
-        8, ge=1, description="distinct RANSAC hypotheses verified (ICP + acceptance rule)"
+        8, ge=1, le=1000, description="distinct RANSAC hypotheses verified (ICP + acceptance rule)"
     )
     screen_icp_iterations: int = Field(
-        3, ge=0, description="feature-level ICP iterations before an alternative is screened"
+        3,
+        ge=0,
+        le=1000,
+        description="feature-level ICP iterations before an alternative is screened",
     )
     icp_coarse_distance_voxels: float = Field(2.0, gt=0, description="feature-level ICP / v")
     icp_fine_distance_voxels: tuple[float, ...] = Field(
         (1.0, 0.5), description="fine-level ICP distances / v, one ICP run each"
     )
-    icp_max_iterations: int = Field(30, ge=1)
-    icp_max_source_points: int = Field(1500, ge=100)
+    icp_max_iterations: int = Field(30, ge=1, le=3000)
+    icp_max_source_points: int = Field(1500, ge=100, le=10_000_000)
     icp_min_normal_cos: float = Field(0.5, ge=-1, le=1)
     score_distance_voxels: float = Field(1.0, gt=0, description="neighbour distance / v")
     score_min_normal_cos: float = Field(0.7, ge=-1, le=1)
@@ -91,8 +96,8 @@ class SearchConfig(BaseModel):
     model_config = ConfigDict(extra="forbid")
 
     enabled: bool = True
-    partners: int = Field(3, ge=1, description="scans of the connected set tried per scan")
+    partners: int = Field(3, ge=1, le=1000, description="scans of the connected set tried per scan")
     offset_deg: float = Field(20.0, ge=0, le=90, description="turn of the group's copies")
     screen_source_points: int = Field(500, ge=50)
     screen_distances_voxels: tuple[float, ...] = Field((8.0, 4.0, 2.0))
-    screen_iterations: int = Field(6, ge=1, description="ICP iterations per distance")
+    screen_iterations: int = Field(6, ge=1, le=1000, description="ICP iterations per distance")

@@ -29,10 +29,12 @@ class PreprocessConfig(BaseModel):
         "surface still leave residuals, and every correct pair failed the residual test",
     )
     normal_radius_voxels: float = Field(2.0, gt=0, description="normal PCA radius / voxel")
-    normal_max_neighbours: int = Field(30, ge=3)
-    orient_neighbours: int = Field(12, ge=3, description="k of the orientation spanning tree")
+    normal_max_neighbours: int = Field(30, ge=3, le=3000)
+    orient_neighbours: int = Field(
+        12, ge=3, le=1000, description="k of the orientation spanning tree"
+    )
     fpfh_radius_voxels: float = Field(5.0, gt=0, description="FPFH radius / voxel")
-    fpfh_max_neighbours: int = Field(100, ge=5)
+    fpfh_max_neighbours: int = Field(100, ge=5, le=10_000)
     outlier_min_cell_share: float = Field(
         0.05, ge=0, lt=1, description="drop points in voxels this sparse (0 = keep all)"
     )

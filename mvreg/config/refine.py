@@ -19,7 +19,7 @@ class RefineConfig(BaseModel):
 
     model_config = ConfigDict(extra="forbid")
 
-    rounds: int = Field(3, ge=0, description="--refine N")
+    rounds: int = Field(3, ge=0, le=100, description="--refine N")
     distance_voxels: tuple[float, ...] = Field(
         (1.0, 0.6, 0.3), description="correspondence distance / feature voxel, per round"
     )
@@ -54,6 +54,7 @@ class RefineConfig(BaseModel):
     joint_icp_iterations: int = Field(
         10,
         ge=0,
+        le=1000,
         description="after the rounds, at most this many Gauss-Newton iterations of joint "
         "point-to-plane ICP over all poses (mvreg.joint_icp); 0: off",
     )

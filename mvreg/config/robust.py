@@ -18,7 +18,7 @@ class RobustConfig(BaseModel):
 
     model_config = ConfigDict(extra="forbid")
 
-    rounds: int = Field(10, ge=0, description="at most; stops when the weights settle")
+    rounds: int = Field(10, ge=0, le=1000, description="at most; stops when the weights settle")
     scale_factor: float = Field(3.0, gt=0)
     min_scale_voxels: float = Field(0.25, gt=0)
     zero_weight: float = Field(0.05, ge=0, lt=1)

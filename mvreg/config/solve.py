@@ -40,7 +40,7 @@ class SolverOptions(BaseModel):
 class IterativeOptions(SolverOptions):
     """Options every iterative solver has."""
 
-    max_iter: int = Field(500, ge=1, description="iteration cap")
+    max_iter: int = Field(500, ge=1, le=1_000_000, description="iteration cap")
     tol: float = Field(1e-6, gt=0, lt=1, description="relative stopping tolerance")
 
 
@@ -65,6 +65,7 @@ class RegAdmmOptions(IterativeOptions):
     staircase_rounds: int = Field(
         3,
         ge=0,
+        le=100,
         description="Riemannian-staircase steps from a point whose certificate fails with "
         "negative curvature (needs polish)",
     )
@@ -76,7 +77,9 @@ class RegAdmmOptions(IterativeOptions):
         description="Newton-polish and certify rounded iterates at checkpoints, stop once "
         "certified; False runs plain eq. (7) to its residual tolerance",
     )
-    lobpcg_steps: int = Field(4, ge=1, description="warm-started LOBPCG steps per iteration")
+    lobpcg_steps: int = Field(
+        4, ge=1, le=1000, description="warm-started LOBPCG steps per iteration"
+    )
     stall_window: int = Field(
         10, ge=1, description="rho_policy='theorem4' doubles rho after this many stalled iterations"
     )
@@ -92,12 +95,16 @@ class BalmOptions(IterativeOptions):
     mu0: float | None = Field(None, gt=0, description="initial penalty (None: lambda_{d+1}(C))")
     gamma: float = Field(2.0, gt=1, description="penalty increase factor")
     eta: float = Field(0.25, gt=0, lt=1, description="sufficient decrease of the consensus")
-    inner_max: int = Field(50, ge=1, description="Gauss-Seidel sweeps per outer iteration")
+    inner_max: int = Field(
+        50, ge=1, le=100_000, description="Gauss-Seidel sweeps per outer iteration"
+    )
     inner_tol: float | None = Field(None, gt=0, description="None: adaptive")
     mu_max_factor: float = Field(10.0, gt=0, description="mu stops at this x lambda_max(C)")
     inner_rel: float = Field(0.1, gt=0, description="adaptive inner tolerance / KKT residual")
     cg_rtol: float = Field(1e-10, gt=0, description="block CG tolerance (matrix-free)")
-    cg_maxiter: int = Field(500, ge=1, description="block CG iteration cap (matrix-free)")
+    cg_maxiter: int = Field(
+        500, ge=1, le=1_000_000, description="block CG iteration cap (matrix-free)"
+    )
 
 
 class CAdmmOptions(IterativeOptions):

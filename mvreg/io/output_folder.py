@@ -44,6 +44,8 @@ RESULT_FILES = (
     "poses_tum.txt",
     "poses_kitti.txt",
     "merged.ply",
+    "merged.laz",  # output.merged_format
+    "merged.e57",
     "report.json",
     "recording.rrd",
 )

@@ -266,8 +266,14 @@ def _check_binary(path: Path, body: int, elements: list[Element], what: str) -> 
     )
 
 
-def check_ply(path: Path) -> None:
-    """Check a PLY file against its header (streaming). Raises ScanFileError."""
+# Open3D's PLY reader (RPly) overflows a fixed buffer on a header line of about 1 KB (the
+# process aborts): such files are read by :func:`read_ply_vertices` instead.
+RPLY_MAX_LINE = 1000
+
+
+def check_ply(path: Path) -> bool:
+    """Check a PLY file against its header (streaming). Raises ScanFileError. Returns
+    whether Open3D can read it (every header line shorter than ``RPLY_MAX_LINE``)."""
     with path.open("rb") as f:
         fmt, elements, num_header = _ply_header(f, path)
         n = _vertex(elements).count
@@ -277,6 +283,38 @@ def check_ply(path: Path) -> None:
             _check_ascii(path, f, num_header + 1, elements, "PLY")
         else:
             _check_binary(path, path.stat().st_size - f.tell(), elements, "PLY")
+        f.seek(0)
+        return max(len(f.readline(MAX_HEADER_BYTES)) for _ in range(num_header)) < RPLY_MAX_LINE
+
+
+def read_ply_vertices(path: Path) -> tuple[np.ndarray, np.ndarray | None, np.ndarray | None]:
+    """(points, normals or None, colors in [0, 1] or None) of a checked PLY file, read with
+    NumPy (for files Open3D cannot read, see ``RPLY_MAX_LINE``). Elements before the
+    vertices must have no list properties (their size is then known)."""
+    with path.open("rb") as f:
+        fmt, elements, num_header = _ply_header(f, path)
+        body = f.tell()
+    k = next(i for i, e in enumerate(elements) if e.name == "vertex")
+    before, v = elements[:k], elements[k]
+    if v.has_list or any(e.has_list for e in before):
+        raise ScanFileError(path, "a header line too long for Open3D, and list properties")
+    if fmt == "ascii":
+        skip = num_header + sum(e.count for e in before)
+        data = np.loadtxt(path, skiprows=skip, max_rows=v.count, ndmin=2, dtype=np.float64)
+    else:
+        order = "<" if fmt == "binary_little_endian" else ">"
+        dtype = np.dtype([(f"c{i}", f"{order}{kd}{sz}") for i, (kd, sz) in enumerate(v.types)])
+        offset = body + sum(e.count * e.row_bytes for e in before)
+        rows = np.fromfile(path, dtype=dtype, count=v.count, offset=offset)
+        data = np.column_stack([rows[f"c{i}"].astype(np.float64) for i in range(len(v.types))])
+    col = {name: data[:, i] for i, name in enumerate(v.names)}
+    points = np.column_stack([col["x"], col["y"], col["z"]])
+    normals = np.column_stack([col[c] for c in ("nx", "ny", "nz")]) if "nz" in col else None
+    colors = None
+    if all(c in col for c in ("red", "green", "blue")):
+        colors = np.column_stack([col[c] for c in ("red", "green", "blue")])
+        colors = colors / 255.0 if colors.max(initial=0.0) > 1.0 else colors
+    return points, normals, colors
 
 
 def _pcd_header(f: BinaryIO, path: Path) -> tuple[Element, str, dict, int]:

@@ -21,6 +21,7 @@ from mvreg.io.loaders.checks import (
     check_text,
     count_lines,
     declared_points,
+    read_ply_vertices,
 )
 
 
@@ -42,7 +43,8 @@ class Open3DLoader:
         sensor_origin = None
         try:
             if suffix == ".ply":
-                check_ply(path)
+                if not check_ply(path):  # a header line Open3D would abort on
+                    return RawCloud(*read_ply_vertices(path))
             elif suffix == ".pcd":
                 sensor_origin = check_pcd(path)
             else:

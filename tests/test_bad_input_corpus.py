@@ -378,3 +378,29 @@ def test_merged_laz_of_a_previous_run_is_mvregs_own(tmp_path):
     (out / "poses.json").write_text("{}")
     (out / "merged.laz").write_bytes(b"old")
     OutputFolder(out, force=True).check()  # no "files mvreg did not write"
+
+
+@pytest.mark.parametrize(
+    "args, needle",
+    [
+        (["register", "{d}", "--out", "{o}", "--voxel-size", "abc"], "'--voxel-size'"),
+        (["register", "{d}", "--out", "{o}", "--nosuch"], "--nosuch"),
+        (["make-problem", "--out", "{o}", "--patches", "1"], "'--patches'"),
+        (["nosuchcommand"], "nosuchcommand"),
+    ],
+)
+def test_usage_errors_are_one_line_from_the_real_cli(tmp_path, args, needle):
+    """click's usage errors (typer prints them as a boxed panel) are one line, exit 2."""
+    import subprocess
+    import sys
+
+    d = good_folder(tmp_path)
+    argv = [a.format(d=d, o=tmp_path / "out") for a in args]
+    r = subprocess.run(
+        [sys.executable, "-m", "mvreg.cli", *argv], capture_output=True, text=True, timeout=120
+    )
+    assert r.returncode == 2, r.stderr
+    lines = [ln for ln in r.stderr.splitlines() if ln.strip()]
+    assert len(lines) == 1 and lines[0].startswith("mvreg: error: "), r.stderr
+    assert needle in lines[0]
+    assert not (tmp_path / "out").exists()

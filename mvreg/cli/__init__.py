@@ -85,7 +85,7 @@ def run() -> None:
     is being imported leaves it half-initialised, and tearing the interpreter down then
     was seen to end the process with 1 instead."""
     try:
-        app()
+        code = _main()
     except SystemExit:
         code = signal_exit_code()
         if code is None:
@@ -93,3 +93,23 @@ def run() -> None:
         sys.stdout.flush()
         sys.stderr.flush()
         os._exit(code)
+    sys.exit(code)
+
+
+def _main() -> int:
+    """:data:`app` with click's usage errors (a bad option value, an unknown option) as
+    one line ``mvreg: error: COMMAND: message`` and exit code 2, like every other error."""
+    try:
+        rv = app(standalone_mode=False)
+    except typer.Abort:  # Ctrl-C at a prompt (mvreg has none) or EOF
+        return 130
+    except typer.TyperException as e:  # click's usage errors (typer vendors click)
+        if not hasattr(e, "format_message"):
+            raise
+        ctx = getattr(e, "ctx", None)
+        where = ctx.command_path if ctx is not None else "mvreg"
+        message = " ".join(e.format_message().split())
+        if message:  # empty: help was shown (no command given)
+            typer.echo(f"mvreg: error: {where}: {message}", err=True)
+        return int(getattr(e, "exit_code", 2))
+    return rv if isinstance(rv, int) else 0

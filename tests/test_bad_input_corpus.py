@@ -404,3 +404,15 @@ def test_usage_errors_are_one_line_from_the_real_cli(tmp_path, args, needle):
     assert len(lines) == 1 and lines[0].startswith("mvreg: error: "), r.stderr
     assert needle in lines[0]
     assert not (tmp_path / "out").exists()
+
+
+def test_points_dropped_from_a_scan_are_named_in_a_warning(tmp_path):
+    d = good_folder(tmp_path)
+    bad = GOOD.copy()
+    bad[7] = np.nan
+    bad[9, 1] = np.inf
+    np.save(d / "c.npy", bad)
+    r = runner.invoke(app, register_args(tmp_path, d))
+    assert r.exit_code in (0, 3), r.output
+    warnings = [ln for ln in r.output.splitlines() if ln.startswith("mvreg: warning")]
+    assert any("c.npy: 2 points with a NaN or infinite coordinate" in w for w in warnings)

@@ -95,6 +95,30 @@ def register(
     run_guarded(_run)
 
 
+def print_input_warnings(reg) -> None:
+    """One warning line per thing the input lost: points dropped from a scan (NaN/inf
+    coordinates, far strays), files not read, scans left out, sequence warnings."""
+    from mvreg.io.loaders import display_path
+
+    for scan in getattr(reg, "scans", None) or []:
+        for count, what in (
+            (scan.num_dropped_nonfinite, "with a NaN or infinite coordinate"),
+            (getattr(scan, "num_dropped_far", 0), "far from the rest (strays)"),
+        ):
+            if count:
+                where = display_path(scan.path) + (
+                    "" if scan.path.name == scan.name else f" ({scan.name})"
+                )
+                typer.echo(f"mvreg: warning: {where}: {count} points {what} left out", err=True)
+    for s in reg.skipped_files:
+        typer.echo(f"mvreg: warning: {s['file']}: not read ({s['reason']})", err=True)
+    for s in reg.rejected_scans:
+        scan = "" if s["scan"] == s["file"] else f" (scan {s['scan']})"
+        typer.echo(f"mvreg: warning: {s['file']}{scan}: not registered: {s['reason']}", err=True)
+    for w in (getattr(reg, "sequence", None) or {}).get("warnings", []):
+        typer.echo(f"mvreg: warning: {w}", err=True)
+
+
 def check_rrd_path(rrd: Path, folder, out, force: bool) -> None:
     """Refuse a --rrd that would overwrite an input or another result in OUT (even with
     --force), or a folder."""
@@ -165,13 +189,7 @@ def register_folder(
             umask = os.umask(0)
             os.umask(umask)
             os.chmod(rrd_path, 0o666 & ~umask)
-    for s in reg.skipped_files:
-        typer.echo(f"mvreg: warning: {s['file']}: not read ({s['reason']})", err=True)
-    for s in reg.rejected_scans:
-        scan = "" if s["scan"] == s["file"] else f" (scan {s['scan']})"
-        typer.echo(f"mvreg: warning: {s['file']}{scan}: not registered: {s['reason']}", err=True)
-    for w in (getattr(reg, "sequence", None) or {}).get("warnings", []):
-        typer.echo(f"mvreg: warning: {w}", err=True)
+    print_input_warnings(reg)
     summary_table(reg)
     typer.echo(
         f"wrote {', '.join(str(p) for p in written)}"

@@ -416,3 +416,28 @@ def test_points_dropped_from_a_scan_are_named_in_a_warning(tmp_path):
     assert r.exit_code in (0, 3), r.output
     warnings = [ln for ln in r.output.splitlines() if ln.startswith("mvreg: warning")]
     assert any("c.npy: 2 points with a NaN or infinite coordinate" in w for w in warnings)
+
+
+def _pcd(data: str, size: int, body: bytes, fields: str = "x y z", n: int = 300) -> bytes:
+    k = len(fields.split())
+    head = (
+        f"VERSION 0.7\nFIELDS {fields}\nSIZE {' '.join([str(size)] * k)}\n"
+        f"TYPE {' '.join(['F'] * k)}\nCOUNT {' '.join(['1'] * k)}\nWIDTH {n}\nHEIGHT 1\n"
+        f"VIEWPOINT 0 0 0 1 0 0 0\nPOINTS {n}\nDATA {data}\n"
+    )
+    return head.encode() + body
+
+
+def test_binary_pcd_with_double_coordinates_is_read_not_zeroed(tmp_path):
+    """Open3D reads 8-byte PCD coordinates as zeros ("only 1 distinct point")."""
+    from mvreg.io.loaders import load_scan
+
+    nrm = GOOD / np.linalg.norm(GOOD, axis=1, keepdims=True)
+    body = np.hstack([GOOD, nrm]).astype("<f8").tobytes()
+    fields = "x y z normal_x normal_y normal_z"
+    (tmp_path / "d.pcd").write_bytes(_pcd("binary", 8, body, fields))
+    scan = load_scan(tmp_path / "d.pcd")
+    assert np.array_equal(scan.points, GOOD) and np.allclose(scan.normals, nrm)
+    (tmp_path / "c.pcd").write_bytes(_pcd("binary_compressed", 8, b"\0" * 64))
+    with pytest.raises(ScanFileError, match="8-byte coordinates"):
+        load_scan(tmp_path / "c.pcd")

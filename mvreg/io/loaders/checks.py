@@ -393,6 +393,37 @@ def check_text(path: Path, min_values: int, counted: bool = False) -> None:
         raise ScanFileError(path, f"line 1 declares {declared} points, the file holds {rows}")
 
 
+def read_pcd_doubles(path: Path) -> tuple[np.ndarray, np.ndarray | None] | None:
+    """(points, normals or None) of a checked binary PCD file whose coordinates are 8-byte
+    floats, which Open3D reads as zeros; None for any other PCD file (Open3D reads it).
+    ScanFileError for such coordinates in a binary_compressed file."""
+    with path.open("rb") as f:
+        el, data, fields, _ = _pcd_header(f, path)
+        body = f.tell()
+    counts = [int(c) for c in fields.get("COUNT", ["1"] * len(fields.get("SIZE", [])))]
+    names = [
+        n if c == 1 else f"{n}_{k}"
+        for n, c in zip(fields.get("FIELDS", []), counts, strict=False)
+        for k in range(c)
+    ]
+    if len(names) != len(el.types) or "x" not in names:
+        return None
+    if el.types[names.index("x")] != ("f", 8) or data == "ascii":
+        return None
+    if data != "binary":
+        raise ScanFileError(
+            path, f"{data} PCD with 8-byte coordinates (Open3D reads them as zeros): "
+            "save it as binary or ascii",
+        )  # fmt: skip
+    dtype = np.dtype([(f"c{i}", f"<{kd}{sz}") for i, (kd, sz) in enumerate(el.types)])
+    rows = np.fromfile(path, dtype=dtype, count=el.count, offset=body)
+    col = {n: rows[f"c{i}"].astype(np.float64) for i, n in enumerate(names)}
+    points = np.column_stack([col["x"], col["y"], col["z"]])
+    keys = ("normal_x", "normal_y", "normal_z")
+    normals = np.column_stack([col[k] for k in keys]) if all(k in col for k in keys) else None
+    return points, normals
+
+
 def count_lines(path: Path) -> int:
     """Non-blank lines of a text file (streaming): an upper bound of its points."""
     with path.open("rb") as f:

@@ -21,6 +21,7 @@ from mvreg.io.loaders.checks import (
     check_text,
     count_lines,
     declared_points,
+    read_pcd_doubles,
     read_ply_vertices,
 )
 
@@ -47,6 +48,9 @@ class Open3DLoader:
                     return RawCloud(*read_ply_vertices(path))
             elif suffix == ".pcd":
                 sensor_origin = check_pcd(path)
+                doubles = read_pcd_doubles(path)
+                if doubles is not None:
+                    return RawCloud(*doubles, sensor_origin=sensor_origin)
             else:
                 check_text(path, 3 if suffix in (".xyz", ".pts") else 6, suffix == ".pts")
         except OSError as e:

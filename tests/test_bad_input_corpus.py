@@ -441,3 +441,15 @@ def test_binary_pcd_with_double_coordinates_is_read_not_zeroed(tmp_path):
     (tmp_path / "c.pcd").write_bytes(_pcd("binary_compressed", 8, b"\0" * 64))
     with pytest.raises(ScanFileError, match="8-byte coordinates"):
         load_scan(tmp_path / "c.pcd")
+
+
+def test_ply_properties_in_any_order_are_read_by_name(tmp_path):
+    """Open3D returns garbage for a vertex element declared z, y, x."""
+    from mvreg.io.loaders import load_scan
+
+    head = ply_header(len(GOOD), "binary_little_endian", "double").replace(
+        "property double x\nproperty double y\nproperty double z",
+        "property double z\nproperty double y\nproperty double x",
+    )
+    (tmp_path / "zyx.ply").write_bytes(head.encode() + GOOD[:, ::-1].astype("<f8").tobytes())
+    assert np.array_equal(load_scan(tmp_path / "zyx.ply").points, GOOD)

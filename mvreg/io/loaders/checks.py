@@ -267,7 +267,8 @@ def _check_binary(path: Path, body: int, elements: list[Element], what: str) -> 
 
 
 # Open3D's PLY reader (RPly) overflows a fixed buffer on a header line of about 1 KB (the
-# process aborts): such files are read by :func:`read_ply_vertices` instead.
+# process aborts), and misreads vertices whose properties are not in x, y, z order: PLY
+# files are read by :func:`read_ply_vertices` instead.
 RPLY_MAX_LINE = 1000
 
 
@@ -289,15 +290,17 @@ def check_ply(path: Path) -> bool:
 
 def read_ply_vertices(path: Path) -> tuple[np.ndarray, np.ndarray | None, np.ndarray | None]:
     """(points, normals or None, colors in [0, 1] or None) of a checked PLY file, read with
-    NumPy (for files Open3D cannot read, see ``RPLY_MAX_LINE``). Elements before the
-    vertices must have no list properties (their size is then known)."""
+    NumPy (Open3D cannot read all, see ``RPLY_MAX_LINE``). The vertex element and those
+    before it must have no list properties (their size is then known)."""
     with path.open("rb") as f:
         fmt, elements, num_header = _ply_header(f, path)
         body = f.tell()
     k = next(i for i, e in enumerate(elements) if e.name == "vertex")
     before, v = elements[:k], elements[k]
     if v.has_list or any(e.has_list for e in before):
-        raise ScanFileError(path, "a header line too long for Open3D, and list properties")
+        raise ScanFileError(
+            path, "list properties in or before the vertex element are not supported"
+        )
     if fmt == "ascii":
         skip = num_header + sum(e.count for e in before)
         data = np.loadtxt(path, skiprows=skip, max_rows=v.count, ndmin=2, dtype=np.float64)

@@ -27,7 +27,8 @@ from mvreg.io.loaders.checks import (
 
 
 class Open3DLoader:
-    """PLY, PCD, XYZ, XYZN, XYZRGB and PTS through ``open3d.io.read_point_cloud``."""
+    """PCD, XYZ, XYZN, XYZRGB and PTS through ``open3d.io.read_point_cloud`` (binary PCD
+    with 8-byte coordinates and PLY, once checked, through NumPy)."""
 
     suffixes = (".ply", ".pcd", ".xyz", ".xyzn", ".xyzrgb", ".pts")
 
@@ -43,10 +44,10 @@ class Open3DLoader:
         suffix = path.suffix.lower()
         sensor_origin = None
         try:
-            if suffix == ".ply":
-                if not check_ply(path):  # a header line Open3D would abort on
-                    return RawCloud(*read_ply_vertices(path))
-            elif suffix == ".pcd":
+            if suffix == ".ply":  # NumPy: Open3D misreads other property orders, and
+                check_ply(path)  # aborts on a header line of ~1 KB
+                return RawCloud(*read_ply_vertices(path))
+            if suffix == ".pcd":
                 sensor_origin = check_pcd(path)
                 doubles = read_pcd_doubles(path)
                 if doubles is not None:

@@ -93,3 +93,20 @@ def test_a_fast_sequence_is_registered_right(tmp_path, seed):
     reg = register_sequence(tmp_path / "fast")
     assert reg.all_registered, reg.report()["unverified"]
     assert reg.truth_errors["rotation_deg_max"] <= 0.2
+
+
+def test_a_bad_bin_frame_is_named_and_nan_rows_are_counted(frames, tmp_path):
+    import shutil
+
+    from mvreg.sequence.sources import read_dataloader
+
+    bins = tmp_path / "bin"
+    shutil.copytree(frames / "bin", bins)
+    rows = np.fromfile(bins / "scan_012.bin", dtype=np.float32).reshape(-1, 4)
+    rows[:5, :3] = np.nan
+    rows.tofile(bins / "scan_012.bin")
+    got, names = read_dataloader("generic", bins, max_frames=14)
+    assert np.isnan(got[12]).any() and names[12] == "scan_012"  # counted by the load stage
+    (bins / "scan_013.bin").write_bytes(b"\0" * 10)  # not a whole number of rows
+    with pytest.raises(InputError, match="scan_013.bin"):
+        read_dataloader("generic", bins, max_frames=14)

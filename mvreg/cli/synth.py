@@ -213,12 +213,16 @@ def _run_sequence(
 
 def _read_viewpoints(path: Path):
     """(N, 3) float64 positions from a text file of 'x y z' lines."""
+    import warnings
+
     import numpy as np
 
     from mvreg.errors import InputError
 
     try:
-        positions = np.loadtxt(path, ndmin=2, dtype=np.float64)
+        with warnings.catch_warnings():  # an empty file: refused below, without numpy's word
+            warnings.simplefilter("ignore", UserWarning)
+            positions = np.loadtxt(path, ndmin=2, dtype=np.float64)
     except FileNotFoundError:
         raise InputError(f"{path}: no such file") from None
     except (OSError, ValueError) as e:

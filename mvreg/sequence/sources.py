@@ -13,6 +13,8 @@ dataloader cannot read, or a frame without finite points, an
 
 from __future__ import annotations
 
+import contextlib
+import io
 from pathlib import Path
 
 import numpy as np
@@ -39,7 +41,8 @@ def read_dataloader(
     if not path.exists():
         raise InputError(f"{path}: no such file or folder (for the {name} dataloader)")
     try:
-        dataset = dataset_factory(dataloader=name, data_dir=path, sequence=sequence)
+        with contextlib.redirect_stdout(io.StringIO()):  # the dataloaders print notices
+            dataset = dataset_factory(dataloader=name, data_dir=path, sequence=sequence)
         count = len(dataset)
     except Exception as e:  # noqa: BLE001 - each dataloader raises its own errors
         raise InputError(f"{path}: the {name} dataloader cannot read it ({e})") from e
@@ -47,18 +50,19 @@ def read_dataloader(
     files = getattr(dataset, "scan_files", None)
     frames, names = [], []
     for k in range(count):
+        where = f"{files[k]}" if files is not None else f"{path}: frame {k}"
         try:
-            item = dataset[k]
+            with contextlib.redirect_stdout(io.StringIO()):
+                item = dataset[k]
         except Exception as e:  # noqa: BLE001
-            raise InputError(f"{path}: frame {k} is not readable by {name} ({e})") from e
+            raise InputError(f"{where}: not readable by the {name} dataloader ({e})") from e
         pts = np.asarray(item[0] if isinstance(item, tuple) else item, dtype=np.float64)
         pts = pts.reshape(-1, 3) if pts.size % 3 == 0 else pts
         if pts.ndim != 2 or pts.shape[1] != 3:
-            raise InputError(f"{path}: frame {k} is not a list of 3D points ({pts.shape})")
-        pts = pts[np.all(np.isfinite(pts), axis=1)]
-        if not len(pts):
-            raise InputError(f"{path}: frame {k} has no finite point")
-        frames.append(pts)
+            raise InputError(f"{where}: not a list of 3D points ({pts.shape})")
+        if not np.any(np.all(np.isfinite(pts), axis=1)):
+            raise InputError(f"{where}: no point with finite coordinates")
+        frames.append(pts)  # rows with NaN/inf: dropped and counted by the load stage
         names.append(Path(str(files[k])).stem if files is not None else f"frame_{k:06d}")
     if len(frames) < 2:
         raise InputError(f"{path}: the {name} dataloader gives {len(frames)} frame(s); 2+ needed")

@@ -4,6 +4,7 @@ each kept here as a regression test: exit code, culprit named, inputs untouched.
 from __future__ import annotations
 
 import hashlib
+import json
 from pathlib import Path
 
 import numpy as np
@@ -453,3 +454,16 @@ def test_ply_properties_in_any_order_are_read_by_name(tmp_path):
     )
     (tmp_path / "zyx.ply").write_bytes(head.encode() + GOOD[:, ::-1].astype("<f8").tobytes())
     assert np.array_equal(load_scan(tmp_path / "zyx.ply").points, GOOD)
+
+
+def test_ground_truth_of_scans_not_in_the_folder_is_named(tmp_path):
+    from mvreg.io.poses import write_poses_json
+
+    d = good_folder(tmp_path)
+    write_poses_json(d / "ground_truth.json", {n: np.eye(4) for n in ("a.npy", "scan_999.ply")})
+    r = runner.invoke(app, register_args(tmp_path, d))
+    assert r.exit_code in (0, 3), r.output
+    warnings = [ln for ln in r.output.splitlines() if ln.startswith("mvreg: warning")]
+    assert any("ground truth" in w and "scan_999.ply" in w for w in warnings), r.output
+    report = json.loads((tmp_path / "out" / "report.json").read_text())
+    assert report["ground_truth_without_scan"] == ["scan_999.ply"]

@@ -115,6 +115,14 @@ def print_input_warnings(reg) -> None:
     for s in reg.rejected_scans:
         scan = "" if s["scan"] == s["file"] else f" (scan {s['scan']})"
         typer.echo(f"mvreg: warning: {s['file']}{scan}: not registered: {s['reason']}", err=True)
+    missing = getattr(reg, "truth_without_scan", [])
+    if missing:
+        more = f", ... ({len(missing)} in all)" if len(missing) > 5 else ""
+        typer.echo(
+            f"mvreg: warning: ground truth: poses of scans not in the input (not evaluated): "
+            f"{', '.join(missing[:5])}{more}",
+            err=True,
+        )
     for w in (getattr(reg, "sequence", None) or {}).get("warnings", []):
         typer.echo(f"mvreg: warning: {w}", err=True)
 

@@ -13,7 +13,10 @@ from mvreg.metrics import overlap_residual, pose_errors
 
 
 def evaluate_overlap_and_truth(reg, pre, truth) -> None:
-    """Overlap residual on the raw points; errors against ground truth when given."""
+    """Overlap residual on the raw points; errors against ground truth when given (and
+    the truth's names that no scan has, in ``reg.truth_without_scan``)."""
+    known = set(reg.all_scan_names)
+    reg.truth_without_scan = sorted(n for n in (truth or {}) if n not in known)
     if not reg.T_world_scan:
         return
     idx = {s.name: i for i, s in enumerate(reg.scans)}

@@ -61,6 +61,7 @@ class Registration:
     undetermined: list[str] = field(default_factory=list)  # left out: a free DOF
     verification: dict = field(default_factory=dict)  # {scan: status, reason, evidence}
     rejected_scans: list[dict] = field(default_factory=list)  # left out: too few points
+    truth_without_scan: list[str] = field(default_factory=list)  # truth names no scan has
 
     def __post_init__(self) -> None:
         # The load stage hands the scans it left out (too few points) over with the
@@ -136,6 +137,7 @@ class Registration:
             "local_frame_offset": None if offset is None else offset.tolist(),
             "skipped_files": self.skipped_files,
             "rejected_scans": self.rejected_scans,
+            "ground_truth_without_scan": self.truth_without_scan,
             "registered": list(self.T_world_scan),
             "unregistered": self.unregistered,
             "unverified": self.unverified,

@@ -467,3 +467,27 @@ def test_ground_truth_of_scans_not_in_the_folder_is_named(tmp_path):
     assert any("ground truth" in w and "scan_999.ply" in w for w in warnings), r.output
     report = json.loads((tmp_path / "out" / "report.json").read_text())
     assert report["ground_truth_without_scan"] == ["scan_999.ply"]
+
+
+@pytest.mark.parametrize("policy", ["balanced", "theorem4"])
+def test_solve_rho_policy_names_from_the_help_work(tmp_path, policy):
+    p, out = tmp_path / "p.npz", tmp_path / "r.json"
+    runner.invoke(app, ["make-problem", "--patches", "12", "--degree", "4", "--out", str(p)])
+    r = runner.invoke(app, ["solve", str(p), "--out", str(out), "--rho", policy])
+    assert r.exit_code == 0, r.output
+    assert f'"rho_policy": "{policy}"' in out.read_text()
+
+
+def test_eval_names_truth_scans_without_a_pose_in_one_warning_line(tmp_path):
+    from mvreg.io.poses import write_poses_json
+
+    res = tmp_path / "res"
+    res.mkdir()
+    write_poses_json(res / "poses.json", {"a": np.eye(4), "b": np.eye(4)})
+    names = ["a", "b", *(f"s{k}" for k in range(1000))]
+    write_poses_json(tmp_path / "gt.json", {n: np.eye(4) for n in names})
+    r = runner.invoke(app, ["eval", str(res), "--truth", str(tmp_path / "gt.json")])
+    assert r.exit_code == 0, r.output
+    warnings = [ln for ln in r.output.splitlines() if "have no pose" in ln]
+    assert len(warnings) == 1 and warnings[0].startswith("mvreg: warning: ")
+    assert "1000 scan(s)" in warnings[0] and len(warnings[0]) < 300

@@ -384,6 +384,11 @@ def eval_cmd(
         )
         missing = [n for n in tru if n not in est]
         if missing:
-            typer.echo(f"not registered: {', '.join(missing)}", err=True)
+            more = f", ... ({len(missing)} in all)" if len(missing) > 5 else ""
+            typer.echo(
+                f"mvreg: warning: {truth}: {len(missing)} scan(s) of the truth have no pose in "
+                f"{poses_path} (unregistered): {', '.join(missing[:5])}{more}",
+                err=True,
+            )
 
     run_guarded(_run)

@@ -12,6 +12,9 @@ from mvreg.cli.common import SET_HELP, check_out_file, config_from, run_guarded
 app = typer.Typer()
 
 
+POLICIES = ("balanced", "theorem4")  # --rho NAME: rho 'auto' with that policy
+
+
 @app.command(epilog="Example:  mvreg solve problem.npz --out result.json --rho auto --max-iter 500")
 def solve(
     problem: Annotated[
@@ -63,7 +66,8 @@ def solve(
             **{
                 "solve.solver": solver,
                 "solve.method": method,
-                "solve.rho": rho,
+                "solve.rho": None if rho in POLICIES else rho,
+                "solve.reg_admm.rho_policy": rho if rho in POLICIES else None,
                 "solve.max_iter": max_iter,
                 "solve.tol": tol,
                 "solve.allow_reflections": allow_reflections or None,

@@ -491,3 +491,15 @@ def test_eval_names_truth_scans_without_a_pose_in_one_warning_line(tmp_path):
     warnings = [ln for ln in r.output.splitlines() if "have no pose" in ln]
     assert len(warnings) == 1 and warnings[0].startswith("mvreg: warning: ")
     assert "1000 scan(s)" in warnings[0] and len(warnings[0]) < 300
+
+
+def test_pts_rows_of_seven_values_are_read_as_xyz_intensity_rgb(tmp_path):
+    """Open3D misreads them (2102 points but only 78 distinct, in the corpus)."""
+    from mvreg.io.loaders import load_scan
+
+    rgb = np.arange(len(GOOD) * 3).reshape(-1, 3) % 256
+    rows = [f"{x:.9f} {y:.9f} {z:.9f} 7 {r} {g} {b}" for (x, y, z), (r, g, b) in
+            zip(GOOD, rgb, strict=True)]  # fmt: skip
+    (tmp_path / "s.pts").write_text(f"{len(rows)}\n" + "\n".join(rows) + "\n")
+    scan = load_scan(tmp_path / "s.pts")
+    assert np.allclose(scan.points, GOOD, atol=1e-8) and np.allclose(scan.colors, rgb / 255)

@@ -27,8 +27,8 @@ from mvreg.io.loaders.checks import (
 
 
 class Open3DLoader:
-    """PCD, XYZ, XYZN, XYZRGB and PTS through ``open3d.io.read_point_cloud`` (binary PCD
-    with 8-byte coordinates and PLY, once checked, through NumPy)."""
+    """PCD through ``open3d.io.read_point_cloud``; PLY, XYZ, XYZN, XYZRGB, PTS and binary
+    PCD with 8-byte coordinates, once checked, through NumPy."""
 
     suffixes = (".ply", ".pcd", ".xyz", ".xyzn", ".xyzrgb", ".pts")
 
@@ -52,8 +52,9 @@ class Open3DLoader:
                 doubles = read_pcd_doubles(path)
                 if doubles is not None:
                     return RawCloud(*doubles, sensor_origin=sensor_origin)
-            else:
+            else:  # NumPy: Open3D misreads PTS rows of 7 values (x y z i r g b)
                 check_text(path, 3 if suffix in (".xyz", ".pts") else 6, suffix == ".pts")
+                return _read_text(path, suffix)
         except OSError as e:
             raise ScanFileError(path, f"cannot read file ({e.strerror or e})") from e
         with o3d.utility.VerbosityContextManager(o3d.utility.VerbosityLevel.Error):
@@ -64,3 +65,21 @@ class Open3DLoader:
         normals = np.asarray(pcd.normals, dtype=np.float64) if pcd.has_normals() else None
         colors = np.asarray(pcd.colors, dtype=np.float64) if pcd.has_colors() else None
         return RawCloud(points, normals, colors, sensor_origin)
+
+
+def _read_text(path: Path, suffix: str) -> RawCloud:
+    """A checked XYZ / XYZN / XYZRGB / PTS file: x y z, then normals (XYZN), colors
+    (XYZRGB; PTS rows of 6 values: r g b, of 7: intensity r g b), 0-255 scaled to [0, 1]."""
+    rows = np.loadtxt(path, skiprows=1 if suffix == ".pts" else 0, ndmin=2, dtype=np.float64)
+    extra = {
+        ".xyzn": ("normals", 3),
+        ".xyzrgb": ("colors", 3),
+        ".pts": ("colors", {6: 3, 7: 4}.get(rows.shape[1])),
+    }.get(suffix)
+    out = {}
+    if extra is not None and extra[1] is not None:
+        cols = rows[:, extra[1] : extra[1] + 3]
+        if extra[0] == "colors" and cols.max(initial=0.0) > 1.0:
+            cols = cols / 255.0
+        out[extra[0]] = cols
+    return RawCloud(rows[:, :3], **out)

@@ -440,8 +440,42 @@ def test_binary_pcd_with_double_coordinates_is_read_not_zeroed(tmp_path):
     scan = load_scan(tmp_path / "d.pcd")
     assert np.array_equal(scan.points, GOOD) and np.allclose(scan.normals, nrm)
     (tmp_path / "c.pcd").write_bytes(_pcd("binary_compressed", 8, b"\0" * 64))
-    with pytest.raises(ScanFileError, match="8-byte coordinates"):
+    with pytest.raises(ScanFileError, match="corrupt binary_compressed PCD"):
         load_scan(tmp_path / "c.pcd")
+
+
+def _literal_lzf(raw: bytes) -> bytes:
+    """Valid LZF made of literal runs only (32 bytes at most each)."""
+    return b"".join(
+        bytes([len(raw[k : k + 32]) - 1]) + raw[k : k + 32] for k in range(0, len(raw), 32)
+    )
+
+
+def test_binary_compressed_pcd_with_double_coordinates_is_decompressed(tmp_path):
+    from mvreg.io.loaders import load_scan
+
+    raw = np.ascontiguousarray(GOOD.T).astype("<f8").tobytes()  # field after field
+    packed = _literal_lzf(raw)
+    body = np.array([len(packed), len(raw)], "<u4").tobytes() + packed
+    (tmp_path / "c.pcd").write_bytes(_pcd("binary_compressed", 8, body))
+    assert np.array_equal(load_scan(tmp_path / "c.pcd").points, GOOD)
+
+
+def test_lzf_decoder_reads_open3d_compressed_pcd(tmp_path):
+    """Open3D's own binary_compressed (float32) output, decoded by mvreg's LZF reader."""
+    import open3d as o3d
+
+    from mvreg.io.loaders.lzf import lzf_decompress
+
+    pts = np.repeat(GOOD[:50], 4, axis=0)  # repeats: back references
+    pcd = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(pts))
+    o3d.io.write_point_cloud(str(tmp_path / "o.pcd"), pcd, compressed=True)
+    data = (tmp_path / "o.pcd").read_bytes()
+    body = data[data.index(b"DATA binary_compressed\n") + 23 :]
+    size, raw_size = np.frombuffer(body[:8], "<u4")
+    raw = lzf_decompress(body[8 : 8 + size], int(raw_size))
+    got = np.frombuffer(raw, "<f4").reshape(3, -1).T
+    assert size < raw_size and np.allclose(got, pts, atol=1e-6)
 
 
 def test_ply_properties_in_any_order_are_read_by_name(tmp_path):

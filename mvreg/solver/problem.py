@@ -146,8 +146,13 @@ class PatchProblem:
             raise ProblemError("patch names are not unique")
         if patch.max() >= m:
             i = int(np.flatnonzero(patch >= m)[0])
+            source = (
+                f"{len(names)} 'patch_names'"
+                if self.patch_names is not None and self.num_patches is None
+                else f"M = {m}"
+            )
             raise ProblemError(
-                f"'patch' index {patch[i]} at observation {i} is out of range (M = {m})"
+                f"'patch' index {patch[i]} at observation {i} is out of range ({source})"
             )
         # Compact node ids to 0..N-1 (the file may use any non-negative ids).
         node_ids, node_idx = np.unique(node, return_inverse=True)

@@ -514,8 +514,15 @@ def _spawn_viewer(recording, port: int) -> str | None:
 
 
 def _temp_path_beside(path: Path) -> Path:
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".rrd", dir=path.parent)
+    """A new hidden file beside ``path``; OutputWriteError naming ``path`` when the place
+    cannot hold it (missing, read-only, not a folder)."""
+    from mvreg.io.atomic import OutputWriteError
+
+    try:
+        path.parent.mkdir(parents=True, exist_ok=True)
+        fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".rrd", dir=path.parent)
+    except OSError as e:
+        raise OutputWriteError(path, e.strerror or str(e)) from e
     os.close(fd)
     return Path(tmp)
 

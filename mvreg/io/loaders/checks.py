@@ -397,9 +397,9 @@ def check_text(path: Path, min_values: int, counted: bool = False) -> None:
 
 
 def read_pcd_doubles(path: Path) -> tuple[np.ndarray, np.ndarray | None] | None:
-    """(points, normals or None) of a checked binary PCD file whose coordinates are 8-byte
-    floats, which Open3D reads as zeros; None for any other PCD file (Open3D reads it).
-    ScanFileError for such coordinates in a binary_compressed file."""
+    """(points, normals or None) of a checked binary or binary_compressed PCD file whose
+    coordinates are 8-byte floats, which Open3D reads as zeros; None for any other PCD
+    file (Open3D reads it)."""
     with path.open("rb") as f:
         el, data, fields, _ = _pcd_header(f, path)
         body = f.tell()
@@ -413,18 +413,43 @@ def read_pcd_doubles(path: Path) -> tuple[np.ndarray, np.ndarray | None] | None:
         return None
     if el.types[names.index("x")] != ("f", 8) or data == "ascii":
         return None
-    if data != "binary":
-        raise ScanFileError(
-            path, f"{data} PCD with 8-byte coordinates (Open3D reads them as zeros): "
-            "save it as binary or ascii",
-        )  # fmt: skip
-    dtype = np.dtype([(f"c{i}", f"<{kd}{sz}") for i, (kd, sz) in enumerate(el.types)])
-    rows = np.fromfile(path, dtype=dtype, count=el.count, offset=body)
-    col = {n: rows[f"c{i}"].astype(np.float64) for i, n in enumerate(names)}
+    if data == "binary":
+        dtype = np.dtype([(f"c{i}", f"<{kd}{sz}") for i, (kd, sz) in enumerate(el.types)])
+        rows = np.fromfile(path, dtype=dtype, count=el.count, offset=body)
+        col = {n: rows[f"c{i}"].astype(np.float64) for i, n in enumerate(names)}
+    elif data == "binary_compressed":
+        col = dict(zip(names, _compressed_columns(path, body, el), strict=True))
+    else:
+        raise ScanFileError(path, f"unknown PCD DATA {data!r}")
     points = np.column_stack([col["x"], col["y"], col["z"]])
     keys = ("normal_x", "normal_y", "normal_z")
     normals = np.column_stack([col[k] for k in keys]) if all(k in col for k in keys) else None
     return points, normals
+
+
+def _compressed_columns(path: Path, body: int, el: Element) -> list[np.ndarray]:
+    """The columns (float64) of a binary_compressed PCD body: two uint32 sizes, then LZF
+    data that decompresses to each field's values for all points, field after field."""
+    from mvreg.io.loaders.lzf import lzf_decompress
+
+    with path.open("rb") as f:
+        f.seek(body)
+        sizes = np.frombuffer(f.read(8), "<u4")
+        if len(sizes) != 2:
+            raise ScanFileError(path, "truncated PCD: no compressed sizes after the header")
+        packed = f.read(int(sizes[0]))
+    need = el.count * sum(size for _, size in el.types)
+    try:
+        if len(packed) != sizes[0] or sizes[1] != need:
+            raise ValueError(f"sizes {sizes.tolist()} do not fit {el.count} points")
+        raw = lzf_decompress(packed, int(sizes[1]))
+    except ValueError as e:
+        raise ScanFileError(path, f"corrupt binary_compressed PCD ({e})") from None
+    cols, at = [], 0
+    for kind, size in el.types:
+        cols.append(np.frombuffer(raw, f"<{kind}{size}", el.count, at).astype(np.float64))
+        at += el.count * size
+    return cols
 
 
 def count_lines(path: Path) -> int:

@@ -143,7 +143,9 @@ class PatchProblem:
         if len(names) != m:
             raise ProblemError(f"{len(names)} patch names given for {m} patches")
         if len(set(names)) != m:
-            raise ProblemError("patch names are not unique")
+            seen: set[str] = set()
+            twice = next(n for n in names if n in seen or seen.add(n))
+            raise ProblemError(f"'patch_names' are not unique ({twice!r} more than once)")
         if patch.max() >= m:
             i = int(np.flatnonzero(patch >= m)[0])
             source = (

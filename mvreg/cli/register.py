@@ -95,6 +95,15 @@ def register(
     run_guarded(_run)
 
 
+def warn(message: str) -> None:
+    typer.echo(f"mvreg: warning: {message}", err=True)
+
+
+def some(names: list[str], k: int = 5) -> str:
+    """The first ``k`` names, and how many there are when more."""
+    return ", ".join(names[:k]) + (f", ... ({len(names)} in all)" if len(names) > k else "")
+
+
 def print_input_warnings(reg) -> None:
     """One warning line per thing the input lost: points dropped from a scan (NaN/inf
     coordinates, far strays), files not read, scans left out, sequence warnings."""
@@ -117,12 +126,7 @@ def print_input_warnings(reg) -> None:
         typer.echo(f"mvreg: warning: {s['file']}{scan}: not registered: {s['reason']}", err=True)
     missing = getattr(reg, "truth_without_scan", [])
     if missing:
-        more = f", ... ({len(missing)} in all)" if len(missing) > 5 else ""
-        typer.echo(
-            f"mvreg: warning: ground truth: poses of scans not in the input (not evaluated): "
-            f"{', '.join(missing[:5])}{more}",
-            err=True,
-        )
+        warn(f"ground truth: poses of scans not in the input (not evaluated): {some(missing)}")
     for w in (getattr(reg, "sequence", None) or {}).get("warnings", []):
         typer.echo(f"mvreg: warning: {w}", err=True)
 
@@ -384,11 +388,9 @@ def eval_cmd(
         )
         missing = [n for n in tru if n not in est]
         if missing:
-            more = f", ... ({len(missing)} in all)" if len(missing) > 5 else ""
-            typer.echo(
-                f"mvreg: warning: {truth}: {len(missing)} scan(s) of the truth have no pose in "
-                f"{poses_path} (unregistered): {', '.join(missing[:5])}{more}",
-                err=True,
+            warn(
+                f"{truth}: {len(missing)} scan(s) of the truth have no pose in {poses_path} "
+                f"(unregistered): {some(missing)}"
             )
 
     run_guarded(_run)

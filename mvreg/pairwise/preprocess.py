@@ -226,7 +226,7 @@ def measure_voxel(target: int, scan: Scan) -> tuple[float, float]:
     voxel = spacing * np.sqrt(max(len(pts), 1) / target)
     for _ in range(2):
         count = _voxel_count(pts, voxel)
-        if count == 0:  # every point alone in its cell: fewer points than the target
+        if count == 0:  # every point alone in a cell: fewer points than the target
             return max(voxel, spacing), spacing
         voxel *= np.sqrt(count / target)
     return voxel, spacing
@@ -256,9 +256,7 @@ def check_voxel_size(voxel_size: float) -> float:
 # A given voxel below this share of the scans' median point spacing downsamples nothing and
 # leaves each FPFH neighbourhood a handful of points: refused rather than run for nothing.
 MIN_VOXEL_SPACINGS = 0.1
-# A given voxel above this share of the scans' median diagonal leaves each scan a few dozen
-# points at most (a surface is about (diagonal / voxel)^2 voxels): nothing to match.
-MAX_VOXEL_DIAGONAL = 0.2
+MAX_VOXEL_DIAGONAL = 0.2  # a given voxel above this share of the median diagonal: refused
 
 
 def check_given_voxel(voxel: float, scans: Sequence[Scan], executor: Executor | int = 2):

@@ -537,3 +537,26 @@ def test_pts_rows_of_seven_values_are_read_as_xyz_intensity_rgb(tmp_path):
     (tmp_path / "s.pts").write_text(f"{len(rows)}\n" + "\n".join(rows) + "\n")
     scan = load_scan(tmp_path / "s.pts")
     assert np.allclose(scan.points, GOOD, atol=1e-8) and np.allclose(scan.colors, rgb / 255)
+
+
+def test_a_recording_whose_writer_died_is_an_error_naming_it(tmp_path, monkeypatch):
+    """rerun raises a bare RuntimeError ('File-writer thread shut down prematurely')."""
+    from mvreg.io.atomic import OutputWriteError
+    from mvreg.viz import make_recorder
+
+    rec = make_recorder(tmp_path / "rec.rrd")
+
+    def died(*a, **k):
+        raise RuntimeError("File-writer thread shut down prematurely")
+
+    monkeypatch.setattr(rec._rec, "flush", died)
+    with pytest.raises(OutputWriteError, match="rec.rrd: cannot write"):
+        rec.close()
+    assert list(tmp_path.iterdir()) == []
+
+
+def test_a_huge_iteration_cap_is_a_cap_not_an_error(tmp_path):
+    p, out = tmp_path / "p.npz", tmp_path / "r.json"
+    runner.invoke(app, ["make-problem", "--patches", "12", "--degree", "4", "--out", str(p)])
+    r = runner.invoke(app, ["solve", str(p), "--out", str(out), "--max-iter", "1000000000"])
+    assert r.exit_code == 0, r.output

@@ -107,6 +107,10 @@ def test_a_bad_bin_frame_is_named_and_nan_rows_are_counted(frames, tmp_path):
     rows.tofile(bins / "scan_012.bin")
     got, names = read_dataloader("generic", bins, max_frames=14)
     assert np.isnan(got[12]).any() and names[12] == "scan_012"  # counted by the load stage
+    warnings: list[str] = []
+    got, _ = read_dataloader("generic", bins, max_frames=14, warnings=warnings)
+    assert not np.isnan(got[12]).any() and len(got[12]) == len(rows) - 5
+    assert len(warnings) == 1 and "scan_012.bin: 5 points with a NaN" in warnings[0]
     (bins / "scan_013.bin").write_bytes(b"\0" * 10)  # not a whole number of rows
     with pytest.raises(InputError, match="scan_013.bin"):
         read_dataloader("generic", bins, max_frames=14)

@@ -40,7 +40,7 @@ class SolverOptions(BaseModel):
 class IterativeOptions(SolverOptions):
     """Options every iterative solver has."""
 
-    max_iter: int = Field(500, ge=1, le=1_000_000, description="iteration cap")
+    max_iter: int = Field(500, ge=1, description="iteration cap")
     tol: float = Field(1e-6, gt=0, lt=1, description="relative stopping tolerance")
 
 

@@ -172,13 +172,16 @@ def register_sequence(
         cfg = cfg.model_copy(update={"sequence": sequence})
     folder = Path(source) if isinstance(source, (str, Path)) else None
     sq = cfg.sequence
+    read_warnings: list[str] = []
     if sq.dataloader is not None:
         if folder is None:
             raise ConfigError("sequence.dataloader reads a path, not point arrays")
         source, names = read_dataloader(
-            sq.dataloader, folder, sq.dataloader_sequence, sq.dataloader_max_frames
-        )
+            sq.dataloader, folder, sq.dataloader_sequence, sq.dataloader_max_frames,
+            warnings=read_warnings,
+        )  # fmt: skip
         folder = None  # frames, not scan files: no timestamps.txt or ground_truth.json
     mode = SequenceMode(folder, timestamps)
+    mode.warnings.extend(read_warnings)
     with Run(cfg, recorder, progress) as run:
         return run_pipeline(run, mode, source, names, truth, result_type=SequenceRegistration)

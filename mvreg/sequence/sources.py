@@ -29,9 +29,15 @@ def dataloader_names() -> list[str]:
 
 
 def read_dataloader(
-    name: str, path: Path, sequence: str | None = None, max_frames: int | None = None
+    name: str,
+    path: Path,
+    sequence: str | None = None,
+    max_frames: int | None = None,
+    warnings: list[str] | None = None,
 ) -> tuple[list[np.ndarray], list[str]]:
-    """(frames, names) of the source at ``path`` read by KISS-ICP's dataloader ``name``."""
+    """(frames, names) of the source at ``path`` read by KISS-ICP's dataloader ``name``.
+    With ``warnings`` (a list), rows with a NaN/inf coordinate are dropped and a warning
+    naming the frame's file and the count is appended for each frame that had some."""
     known = dataloader_names()
     if name not in known:
         raise ConfigError(f"sequence.dataloader {name!r} is not one of {', '.join(known)}")
@@ -60,9 +66,14 @@ def read_dataloader(
         pts = pts.reshape(-1, 3) if pts.size % 3 == 0 else pts
         if pts.ndim != 2 or pts.shape[1] != 3:
             raise InputError(f"{where}: not a list of 3D points ({pts.shape})")
-        if not np.any(np.all(np.isfinite(pts), axis=1)):
+        finite = np.all(np.isfinite(pts), axis=1)
+        if not np.any(finite):
             raise InputError(f"{where}: no point with finite coordinates")
-        frames.append(pts)  # rows with NaN/inf: dropped and counted by the load stage
+        if warnings is not None and not finite.all():
+            warnings.append(f"{where}: {int((~finite).sum())} points with a NaN or infinite "
+                            "coordinate left out")  # fmt: skip
+            pts = pts[finite]
+        frames.append(pts)  # without ``warnings``: NaN/inf rows dropped by the load stage
         names.append(Path(str(files[k])).stem if files is not None else f"frame_{k:06d}")
     if len(frames) < 2:
         raise InputError(f"{path}: the {name} dataloader gives {len(frames)} frame(s); 2+ needed")

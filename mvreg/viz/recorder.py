@@ -329,8 +329,15 @@ class Recorder(NullRecorder):
             return
         self._closed = True
         try:
-            self._rec.flush()
-            self._rec.disconnect()  # drops the file sink, which writes the footer
+            try:
+                self._rec.flush()
+                self._rec.disconnect()  # drops the file sink, which writes the footer
+            except RuntimeError as e:  # the file sink's writer died (disk full, ...)
+                from mvreg.io.atomic import OutputWriteError
+
+                if self._tmp_path is not None:
+                    _check_not_cut_by_full_disk(self._tmp_path, self.rrd_path)
+                raise OutputWriteError(self.rrd_path or "recording", _why(e)) from e
             if self._tmp_path is not None:
                 _check_not_cut_by_full_disk(self._tmp_path, self.rrd_path)
                 os.replace(self._tmp_path, self.rrd_path)
@@ -460,6 +467,12 @@ def make_recorder(
         return NullRecorder(warnings)
     recording.set_sinks(*sinks)
     return Recorder(recording, rrd_path=rrd_path, tmp_path=tmp_path, warnings=warnings, **options)
+
+
+def _why(e: Exception) -> str:
+    """The reason of a failed recording: the file system's when it is full."""
+    text = str(e).splitlines()[0] if str(e) else type(e).__name__
+    return "No space left on device" if "No space" in str(e) else text
 
 
 def _check_not_cut_by_full_disk(tmp_path: Path, rrd_path: Path) -> None:

@@ -90,15 +90,10 @@ def problem_bytes(num_patches: int, d: int, degree: int, nodes_per_pair: int) ->
 
 
 def check_problem_size(num_patches: int, d: int, degree: int, nodes_per_pair: int) -> None:
-    """InputError naming the sizes when the degree exceeds the other patches or
-    :func:`make_problem` would need more than half of this machine's memory (checked
-    before anything is allocated)."""
-    if degree > num_patches - 1:
-        raise InputError(
-            f"--degree {degree}: a patch overlaps at most the {num_patches - 1} others "
-            f"(--patches {num_patches})"
-        )
-    need = problem_bytes(num_patches, d, degree, nodes_per_pair)
+    """InputError naming the sizes when :func:`make_problem` would need more than half of
+    this machine's memory (checked before anything is allocated; a degree of M - 1 or more
+    is a complete overlap graph)."""
+    need = problem_bytes(num_patches, d, min(degree, num_patches - 1), nodes_per_pair)
     have = os.sysconf("SC_PHYS_PAGES") * os.sysconf("SC_PAGE_SIZE")
     if need > have / 2:
         raise InputError(

@@ -560,3 +560,9 @@ def test_a_huge_iteration_cap_is_a_cap_not_an_error(tmp_path):
     runner.invoke(app, ["make-problem", "--patches", "12", "--degree", "4", "--out", str(p)])
     r = runner.invoke(app, ["solve", str(p), "--out", str(out), "--max-iter", "1000000000"])
     assert r.exit_code == 0, r.output
+
+
+def test_make_problem_default_degree_fits_few_patches(tmp_path):
+    """The default degree adapts to M (5 patches: every pair); a given one is checked."""
+    r = runner.invoke(app, ["make-problem", "--patches", "5", "--out", str(tmp_path / "p.npz")])
+    assert r.exit_code == 0, r.output

@@ -104,7 +104,10 @@ def make_problem_cmd(
     out: Annotated[Path, typer.Option("--out", "-o", help=".npz to write.")],
     patches: Annotated[int, typer.Option(min=2, help="Number of patches M.")] = 100,
     d: Annotated[int, typer.Option(min=2, max=3, help="Dimension.")] = 3,
-    degree: Annotated[int, typer.Option(min=1, help="Mean number of overlapping patches.")] = 6,
+    degree: Annotated[
+        int | None,
+        typer.Option(min=1, help="Mean number of overlapping patches (default 6, at most M-1)."),
+    ] = None,
     nodes_per_pair: Annotated[
         int, typer.Option(min=1, help="Shared nodes per overlapping pair.")
     ] = 20,
@@ -121,12 +124,19 @@ def make_problem_cmd(
 
     def _run():
         from data_synth.problems import make_problem
+        from mvreg.errors import InputError
         from mvreg.geometry import make_transform
         from mvreg.io.poses import write_poses_json
         from mvreg.solver import save_problem
 
         check_out_file(out, force)
-        prob, truth = make_problem(patches, d, degree, nodes_per_pair, noise, outliers, seed=seed)
+        if degree is not None and degree > patches - 1:
+            raise InputError(
+                f"--degree {degree}: a patch overlaps at most the {patches - 1} others "
+                f"(--patches {patches})"
+            )
+        deg = min(6, patches - 1) if degree is None else degree
+        prob, truth = make_problem(patches, d, deg, nodes_per_pair, noise, outliers, seed=seed)
         save_problem(out, prob)
         gt = out.with_name(out.stem + "_truth.json")
         write_poses_json(
@@ -140,7 +150,7 @@ def make_problem_cmd(
             generator={
                 "patches": patches,
                 "d": d,
-                "degree": degree,
+                "degree": deg,
                 "nodes_per_pair": nodes_per_pair,
                 "noise": noise,
                 "outliers": outliers,

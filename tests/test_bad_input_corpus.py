@@ -13,6 +13,7 @@ from typer.testing import CliRunner
 
 from mvreg.cli import app
 from mvreg.errors import InputError, ScanFileError
+from tests.conftest import small_tmpfs
 from tests.test_bad_input import GOOD, ply_header, register_args
 
 runner = CliRunner()
@@ -204,23 +205,15 @@ def test_a_recording_cut_short_by_a_full_disk_is_an_error_naming_it(tmp_path, mo
 
 def test_real_full_disk_while_recording(tmp_path):
     """A tmpfs that holds poses and report but not the recording: exit 4 naming it."""
-    import subprocess
-
     mnt = tmp_path / "mnt"
     mnt.mkdir()
-    r = subprocess.run(["mount", "-t", "tmpfs", "-o", "size=24k", "tmpfs", str(mnt)],
-                       capture_output=True)  # fmt: skip
-    if r.returncode != 0:
-        pytest.skip("cannot mount a tmpfs here")
-    try:
+    with small_tmpfs(mnt, "24k"):
         d = good_folder(tmp_path)
         r = runner.invoke(app, ["register", str(d), "--out", str(mnt / "o")])
         assert r.exit_code == 4, r.output
         one_error_line(r.output, "cannot write", "No space left on device")
         assert "ERROR" not in r.output
         assert [p.name for p in mnt.iterdir()] == []
-    finally:
-        subprocess.run(["umount", str(mnt)], check=False)
 
 
 def test_out_under_a_file_names_out_not_the_staging_folder(tmp_path):

@@ -21,6 +21,7 @@ from mvreg.cli import app, run_guarded
 from mvreg.errors import InputError, OutputExistsError
 from mvreg.io.atomic import OutputWriteError, atomic_path, atomic_write_text
 from mvreg.io.output_folder import OutputFolder
+from tests.conftest import small_tmpfs
 
 runner = CliRunner()
 ROOT = Path(__file__).resolve().parents[1]
@@ -158,11 +159,7 @@ def test_disk_full_names_the_file_and_keeps_the_old_set(tmp_path):
 def test_real_full_disk_on_a_small_tmpfs(tmp_path):
     mnt = tmp_path / "mnt"
     mnt.mkdir()
-    r = subprocess.run(["mount", "-t", "tmpfs", "-o", "size=64k", "tmpfs", str(mnt)],
-                       capture_output=True)  # fmt: skip
-    if r.returncode != 0:
-        pytest.skip("cannot mount a tmpfs here")
-    try:
+    with small_tmpfs(mnt, "64k"):
         out = mnt / "out"
         before = old_set(out)
         with pytest.raises(OutputWriteError) as info, OutputFolder(out, force=True) as staging:
@@ -170,8 +167,6 @@ def test_real_full_disk_on_a_small_tmpfs(tmp_path):
             atomic_write_text(staging / "merged.ply", "x" * 200_000)
         assert info.value.path == str(out / "merged.ply")
         assert contents(out) == before and leftovers(mnt) == []
-    finally:
-        subprocess.run(["umount", str(mnt)], check=False)
 
 
 def test_sigterm_exits_143_and_discards_the_run(tmp_path):
@@ -351,15 +346,9 @@ def test_signal_during_register_keeps_the_old_set(tmp_path, synth_scans, sig):
 def test_out_that_is_a_mount_point_is_a_one_line_error(tmp_path):
     out = tmp_path / "out"
     out.mkdir()
-    r = subprocess.run(["mount", "-t", "tmpfs", "-o", "size=64k", "tmpfs", str(out)],
-                       capture_output=True)  # fmt: skip
-    if r.returncode != 0:
-        pytest.skip("cannot mount a tmpfs here")
-    try:
+    with small_tmpfs(out, "64k"):
         with pytest.raises(OutputWriteError, match="cannot replace the folder") as info:
             with OutputFolder(out) as staging:
                 (staging / "poses.json").write_text("new")
         assert info.value.path == str(out)
         assert os.listdir(out) == [] and leftovers(tmp_path) == []
-    finally:
-        subprocess.run(["umount", str(out)], check=False)

@@ -266,38 +266,27 @@ bad_scan(
     expect={2, 3},
     note="random doubles include NaN/inf/1e300: refused or left out, named",
 )
-bad_scan(
-    "ply-count-fewer",
-    "header: fewer vertices than the body holds",
-    B,
-    lambda c: ply_binary(pts(c)).replace(
-        f"element vertex {len(pts(c))}".encode(), f"element vertex {len(pts(c)) - 100}".encode()
-    ),
-)
-bad_scan(
-    "ply-count-more",
-    "header: more vertices than the body holds",
-    B,
-    lambda c: ply_binary(pts(c)).replace(
-        f"element vertex {len(pts(c))}".encode(), f"element vertex {len(pts(c)) + 100}".encode()
-    ),
-)
-bad_scan(
-    "ply-ascii-count-fewer",
-    "ascii: fewer vertices declared than rows",
-    B,
-    lambda c: ply_ascii(pts(c)).replace(
-        f"element vertex {len(pts(c))}".encode(), f"element vertex {len(pts(c)) - 5}".encode()
-    ),
-)
-bad_scan(
-    "ply-ascii-count-more",
-    "ascii: more vertices declared than rows",
-    B,
-    lambda c: ply_ascii(pts(c)).replace(
-        f"element vertex {len(pts(c))}".encode(), f"element vertex {len(pts(c)) + 5}".encode()
-    ),
-)
+
+
+def _recount(writer, delta: int):
+    """The scan written by ``writer`` with its header's vertex count off by ``delta``."""
+
+    def make(c):
+        n = len(pts(c))
+        return writer(pts(c)).replace(
+            f"element vertex {n}".encode(), f"element vertex {n + delta}".encode()
+        )
+
+    return make
+
+
+for _cid, _desc, _writer, _delta in (
+    ("ply-count-fewer", "header: fewer vertices than the body holds", ply_binary, -100),
+    ("ply-count-more", "header: more vertices than the body holds", ply_binary, 100),
+    ("ply-ascii-count-fewer", "ascii: fewer vertices declared than rows", ply_ascii, -5),
+    ("ply-ascii-count-more", "ascii: more vertices declared than rows", ply_ascii, 5),
+):
+    bad_scan(_cid, _desc, B, _recount(_writer, _delta))
 bad_scan(
     "ply-missing-z",
     "no z property",

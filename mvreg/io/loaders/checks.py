@@ -266,15 +266,8 @@ def _check_binary(path: Path, body: int, elements: list[Element], what: str) -> 
     )
 
 
-# Open3D's PLY reader (RPly) overflows a fixed buffer on a header line of about 1 KB (the
-# process aborts), and misreads vertices whose properties are not in x, y, z order: PLY
-# files are read by :func:`read_ply_vertices` instead.
-RPLY_MAX_LINE = 1000
-
-
-def check_ply(path: Path) -> bool:
-    """Check a PLY file against its header (streaming). Raises ScanFileError. Returns
-    whether Open3D can read it (every header line shorter than ``RPLY_MAX_LINE``)."""
+def check_ply(path: Path) -> None:
+    """Check a PLY file against its header (streaming). Raises ScanFileError."""
     with path.open("rb") as f:
         fmt, elements, num_header = _ply_header(f, path)
         n = _vertex(elements).count
@@ -284,13 +277,12 @@ def check_ply(path: Path) -> bool:
             _check_ascii(path, f, num_header + 1, elements, "PLY")
         else:
             _check_binary(path, path.stat().st_size - f.tell(), elements, "PLY")
-        f.seek(0)
-        return max(len(f.readline(MAX_HEADER_BYTES)) for _ in range(num_header)) < RPLY_MAX_LINE
 
 
 def read_ply_vertices(path: Path) -> tuple[np.ndarray, np.ndarray | None, np.ndarray | None]:
     """(points, normals or None, colors in [0, 1] or None) of a checked PLY file, read with
-    NumPy (Open3D cannot read all, see ``RPLY_MAX_LINE``). The vertex element and those
+    NumPy by property name: Open3D's reader (RPly) aborts the process on a header line of
+    about 1 KB and misreads vertices not declared x, y, z. The vertex element and those
     before it must have no list properties (their size is then known)."""
     with path.open("rb") as f:
         fmt, elements, num_header = _ply_header(f, path)

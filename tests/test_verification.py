@@ -106,10 +106,14 @@ def test_scan_placed_by_one_wrong_pair_is_unverified(builtin_scans):
         mine = [r for r in results if k in (r.i, r.j) and r.accepted]
         best = max(mine, key=lambda r: r.overlap_ratio)
         others = [r for r in results if k not in (r.i, r.j)]
+        hook.pairs = {r.names for r in others} | {best.names}
         return others + inject(pre, [best])
 
     reg = register(builtin_scans, seed=0, pair_hook=hook)
     target = hook.target
+    # The pair table holds every pair tried, not only those of the last re-solve (which
+    # leaves out the pairs of a dropped scan).
+    assert {tuple(p["scans"]) for p in reg.pairs} == hook.pairs
     assert inject.injected and target in inject.injected[0]
     ver = reg.verification[target]
     assert ver["reason"]

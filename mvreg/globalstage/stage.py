@@ -171,6 +171,7 @@ class GlobalStage:
             if placed and self.plan.final_check:
                 self._polish(ctx, pre, out, dropped)
                 timed("polish")
+        out.results = _every_pair(results, out.results)
         return out, ver, dropped
 
     def _polish(self, ctx, pre, out, dropped) -> None:
@@ -189,6 +190,17 @@ class GlobalStage:
         )  # fmt: skip
         if log is not None and log.get("accepted"):
             out.solution.T_world_scan.update(new.T_world_scan)
+
+
+def _every_pair(results: Sequence[PairResult], last: Sequence[PairResult]) -> list[PairResult]:
+    """Every pair result of the run (the pair table reports them all), each as the last
+    solve saw it: verification re-solves without the pairs of dropped scans, so the last
+    outcome holds only a subset."""
+    latest = {(r.i, r.j): r for r in last}
+    seen = {(r.i, r.j) for r in results}
+    return [latest.get((r.i, r.j), r) for r in results] + [
+        r for r in last if (r.i, r.j) not in seen
+    ]
 
 
 def _worth_placing(v) -> bool:

@@ -118,6 +118,8 @@ class RegOperator:
         self.lap = LaplacianSolver(self.S, laplacian)
         self.num_matvecs = 0
         self._dense = None
+        # PARDISO's forecast of the bordered system's factorization (shift_invert.py).
+        self.factor_forecast: dict | None = None
         self.timings = {"assemble": t1 - t0, "laplacian_setup": time.perf_counter() - t1}
 
     # ------------------------------------------------------------------ products

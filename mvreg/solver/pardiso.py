@@ -100,9 +100,12 @@ class PardisoFactor:
 
     Attributes: ``inertia`` = (positive, negative) pivot counts (with ``perturbed`` pivots
     replaced by small values: then the counts are approximate); ``factor_nnz``.
+
+    ``analyse_only``: only the analysis (METIS ordering, symbolic factorization): sets
+    ``factor_nnz`` and ``factor_flops`` (what the factorization would take) and releases.
     """
 
-    def __init__(self, a: sp.spmatrix, refine: bool = False):
+    def __init__(self, a: sp.spmatrix, refine: bool = False, *, analyse_only: bool = False):
         lib = _load()
         if lib is None:
             raise SolverError("MKL PARDISO is not available")
@@ -129,9 +132,15 @@ class PardisoFactor:
         ip[10] = 0  # no scaling (symmetric indefinite)
         ip[12] = 0  # no weighted matching
         ip[17] = -1  # report nonzeros of the factor
+        ip[18] = -1 if analyse_only else 0  # report the factorization's MFLOP (analysis)
         ip[20] = 1  # Bunch-Kaufman 1x1 and 2x2 pivoting
         ip[34] = 1  # zero-based indexing
         self._alive = True
+        if analyse_only:
+            self._call(11, np.zeros(n), np.zeros(n), 1)
+            self.factor_nnz, self.factor_flops = int(ip[17]), 1e6 * float(ip[18])
+            self.release()
+            return
         self._call(12, np.zeros(n), np.zeros(n), 1)
         self.factor_nnz = int(ip[17])
         self.inertia = (int(ip[21]), int(ip[22]))

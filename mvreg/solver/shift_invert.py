@@ -13,6 +13,8 @@ is <xi, (C + Lambda) xi>).
 
 from __future__ import annotations
 
+import time
+
 import numpy as np
 import scipy.sparse as sp
 import scipy.sparse.linalg as spla
@@ -25,6 +27,13 @@ DIRECT_MAX_UNKNOWNS = 800_000
 # The same with MKL PARDISO.
 PARDISO_MAX_UNKNOWNS = 2_000_000
 NEWTON_PARDISO_MAX_UNKNOWNS = 1_000_000
+# A factorization forecast to take more floating-point operations than this is not
+# attempted (direct_feasible). PARDISO factorizes at ~10 GFLOP/s on one core of this
+# machine (random graph, M = 3000: 3.8e10 in 3.7 s), so ~50 s per factorization, and a run
+# takes three (spectrum, polish, certificate). Forecasts at 1% noise: geometric overlap
+# graph M = 10k 2.6e9, 30k 2.3e10, 100k 2.7e11 (direct, as before); random (expander)
+# graph M = 1000 1.5e9, 3000 3.8e10, 10k 1.4e12 (~3 x 140 s: iterative instead).
+FACTOR_MAX_FLOPS = 5e11
 # The shift sigma of every shifted inverse (C + Lambda + sigma I)^{-1}, relative to
 # lambda_max(C): spectral start, certificate and the large-problem Newton preconditioner.
 SHIFT = 1e-4
@@ -90,20 +99,25 @@ class _Solve:
         return self._fn(b)
 
 
+def bordered_system(op, lam_blocks: np.ndarray | None, sigma: float):
+    """(K with patch 0's translation grounded, the kept unknowns, their patches)."""
+    m, n = op.M, op.n
+    a = op.C0 + sigma * sp.eye(n)
+    if lam_blocks is not None:
+        a = a + sp.block_diag(list(lam_blocks), format="csr")
+    K = sp.bmat([[a, op.B], [op.B.T, op.S]], format="csr")
+    keep = np.r_[np.arange(n), n + 1 + np.arange(m - 1)]  # translation of patch 0 = 0
+    dof_patch = np.r_[np.arange(n) // op.d, np.arange(m)][keep]
+    return K[keep][:, keep], keep, dof_patch
+
+
 class ShiftedInverse:
     """Applies (C + Lambda + sigma I)^{-1} via a sparse LU of the bordered system."""
 
     def __init__(self, op, lam_blocks: np.ndarray | None, sigma: float):
-        m, n = op.M, op.n
-        a = op.C0 + sigma * sp.eye(n)
-        if lam_blocks is not None:
-            a = a + sp.block_diag(list(lam_blocks), format="csr")
-        K = sp.bmat([[a, op.B], [op.B.T, op.S]], format="csr")
-        keep = np.r_[np.arange(n), n + 1 + np.arange(m - 1)]  # translation of patch 0 = 0
-        self.keep = keep
-        self.n, self.m = n, m
-        dof_patch = np.r_[np.arange(n) // op.d, np.arange(m)][keep]
-        self._solve = factorize(K[keep][:, keep], dof_patch, op.S)
+        K, self.keep, dof_patch = bordered_system(op, lam_blocks, sigma)
+        self.n, self.m = op.n, op.M
+        self._solve = factorize(K, dof_patch, op.S)
 
     @property
     def negative_eigenvalues(self) -> int | None:
@@ -142,9 +156,32 @@ def newton_direct_feasible(op) -> bool:
 
 
 def direct_feasible(op) -> bool:
-    """Whether a sparse factorization of the bordered system is affordable for this problem."""
+    """Whether a sparse factorization of the bordered system is affordable for this problem.
+
+    Its size first (``PARDISO_MAX_UNKNOWNS`` / ``DIRECT_MAX_UNKNOWNS``); with PARDISO also
+    its cost, forecast once per operator by PARDISO's analysis (METIS ordering and symbolic
+    factorization, no numbers): at most ``FACTOR_MAX_FLOPS``. The fill of a factorization
+    depends on the overlap graph, not on its size alone: a graph like a mesh (scans of an
+    object, a building) has small separators, an expander (random overlaps) has none, and
+    its factor is nearly dense. The iterative paths (LOBPCG and CG without a factorization)
+    converge fast exactly there, since an expander's spectrum is well separated.
+    """
     limit = PARDISO_MAX_UNKNOWNS if pardiso.available() else DIRECT_MAX_UNKNOWNS
-    return op.M * (op.d + 1) <= limit
+    if op.M * (op.d + 1) > limit:
+        return False
+    if not pardiso.available() or op.M < 2:
+        return True
+    if op.factor_forecast is None:
+        t0 = time.perf_counter()
+        K, _, _ = bordered_system(op, None, 1.0)
+        f = pardiso.PardisoFactor(K, analyse_only=True)
+        op.factor_forecast = {
+            "factor_nnz": f.factor_nnz,
+            "factor_flops": f.factor_flops,
+            "direct": bool(f.factor_flops <= FACTOR_MAX_FLOPS),
+        }
+        op.timings["factor_forecast"] = time.perf_counter() - t0
+    return op.factor_forecast["direct"]
 
 
 def skew_basis(d: int) -> np.ndarray:

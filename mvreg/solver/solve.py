@@ -194,5 +194,6 @@ def _result(problem, cfg: SolveConfig, setup: _Setup, run: SolverRun, R, t, z, c
             **run.stats,
             "C_products": op.num_matvecs,
             "laplacian": op.lap.method,
+            "factor_forecast": op.factor_forecast,
         },
     )

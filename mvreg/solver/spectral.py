@@ -12,6 +12,8 @@ them first with ``solve.spectral.polish``).
 
 from __future__ import annotations
 
+import warnings
+
 import numpy as np
 import scipy.linalg as sla
 import scipy.sparse.linalg as spla
@@ -36,8 +38,9 @@ def spectrum(op, dense: bool, seed: int = 0, tol: float = 1e-10) -> Spectrum:
     """Smallest d+1 eigenpairs of C.
 
     Dense: exact eigh. Matrix-free: shift-invert Lanczos with (C + sigma I)^{-1} from one
-    sparse LU (shift_invert.py) when affordable, else Lanczos on lambda_max I - C (slow
-    when lambda_{d+1} / lambda_max is small).
+    sparse LU (shift_invert.py) when affordable, else LOBPCG preconditioned by the inverse
+    diagonal blocks of C0 (Lanczos on lambda_max I - C, slow when lambda_{d+1} /
+    lambda_max is small, if LOBPCG breaks down).
     """
     d, n = op.d, op.n
     k = min(d + 1, n)
@@ -58,6 +61,10 @@ def spectrum(op, dense: bool, seed: int = 0, tol: float = 1e-10) -> Spectrum:
         )
         order = np.argsort(w)
         return Spectrum(w[order], v[:, order], lmax)
+    try:
+        return lobpcg_spectrum(op, k, lmax, seed)
+    except (np.linalg.LinAlgError, ValueError):
+        pass  # LOBPCG broke down (a singular block): Lanczos, slower but sure
     shifted = spla.LinearOperator(
         (n, n), matvec=lambda x: lmax * x - op.matvec(x), dtype=np.float64
     )
@@ -66,6 +73,45 @@ def spectrum(op, dense: bool, seed: int = 0, tol: float = 1e-10) -> Spectrum:
     w = lmax - w
     order = np.argsort(w)
     return Spectrum(w[order], v[:, order], lmax)
+
+
+def block_jacobi(op) -> spla.LinearOperator:
+    """The inverse of the d x d diagonal blocks of C0 (the data's own blocks) as an
+    operator: LOBPCG's preconditioner where no factorization is affordable."""
+    d, m = op.d, op.M
+    c0 = op.C0.tocoo()
+    same = c0.row // d == c0.col // d
+    blocks = np.zeros((m, d, d))
+    np.add.at(blocks, (c0.row[same] // d, c0.row[same] % d, c0.col[same] % d), c0.data[same])
+    ridge = 1e-12 * np.maximum(np.trace(blocks, axis1=1, axis2=2), 1e-300)
+    inv = np.linalg.inv(blocks + ridge[:, None, None] * np.eye(d))
+
+    def apply(x):
+        x2 = x.reshape(m, d, -1)
+        return np.einsum("mab,mbr->mar", inv, x2).reshape(x.shape)
+
+    return spla.LinearOperator((op.n, op.n), matvec=apply, matmat=apply, dtype=np.float64)
+
+
+# LOBPCG's iteration cap and tolerance (residual norm relative to lambda_max) for the
+# spectrum without a factorization. The vectors start the solver, which polishes and
+# certifies them, so a few digits suffice (random graph, M = 3000: 200 iterations give
+# lambda_{d+1} to 1%, M = 10k: see docs/benchmarks/noise_sweep.md).
+LOBPCG_MAX_ITER = 400
+LOBPCG_RTOL = 1e-6
+
+
+def lobpcg_spectrum(op, k: int, lmax: float, seed: int) -> Spectrum:
+    """The k smallest eigenpairs of C by LOBPCG, block-Jacobi preconditioned."""
+    x0 = np.random.default_rng(seed).standard_normal((op.n, k))
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", UserWarning)  # "did not reach the tolerance"
+        w, v = spla.lobpcg(
+            op.as_linear_operator(), x0, M=block_jacobi(op), largest=False,
+            tol=LOBPCG_RTOL * lmax, maxiter=LOBPCG_MAX_ITER,
+        )  # fmt: skip
+    order = np.argsort(w)
+    return Spectrum(np.asarray(w)[order], np.asarray(v)[:, order], lmax)
 
 
 def spectral_rotations(spec: Spectrum, d: int, allow_reflections: bool = False) -> np.ndarray:

@@ -10,7 +10,7 @@ import pytest
 from data_synth.problems import make_problem
 from mvreg.metrics import rotation_errors_deg
 from mvreg.solver import RegOperator, pardiso, shift_invert, solve
-from mvreg.solver.spectral import lobpcg_spectrum, spectrum
+from mvreg.solver.spectral import lobpcg_spectrum, spectral_rotations, spectrum
 
 needs_pardiso = pytest.mark.skipif(not pardiso.available(), reason="MKL PARDISO not loadable")
 
@@ -58,3 +58,22 @@ def test_iterative_path_certifies_the_same_solution(monkeypatch):
     err = rotation_errors_deg(iterative.rotations, direct.rotations)
     assert err.max() < 1e-3
     assert np.median(rotation_errors_deg(iterative.rotations, truth.rotations)) < 1.0
+
+
+def test_tangent_block_jacobi_cuts_the_newton_cg_steps(monkeypatch):
+    """Without a factorization the polish's Newton CG is preconditioned by the per-patch
+    blocks of the Riemannian Hessian: the same KKT point in fewer CG steps."""
+    import mvreg.solver.polish as polish_mod
+
+    problem, _ = make_problem(800, d=3, noise=0.04, graph="random", seed=5)
+    op = RegOperator(problem)
+    spec = spectrum(op, dense=False, seed=0)
+    R0 = spectral_rotations(spec, 3)
+    monkeypatch.setattr(polish_mod, "direct_feasible", lambda op: False)
+    monkeypatch.setattr(polish_mod, "newton_direct_feasible", lambda op: False)
+    R1, s1 = polish_mod.polish(op, R0, spec.largest, precondition=True)
+    R2, s2 = polish_mod.polish(op, R0, spec.largest, precondition=False)
+    assert s1.kkt_residual <= 1e-10 and s2.kkt_residual <= 1e-10
+    assert abs(s1.objective - s2.objective) <= 1e-9 * abs(s2.objective)
+    assert rotation_errors_deg(R1, R2).max() < 1e-4
+    assert s1.cg_steps < 0.7 * s2.cg_steps, (s1.cg_steps, s2.cg_steps)

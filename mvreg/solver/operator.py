@@ -131,6 +131,17 @@ class RegOperator:
         bt = self.B.T @ v
         return self.C0 @ v - self.B @ self.lap.solve(bt)
 
+    def diagonal_blocks(self) -> np.ndarray:
+        """(M, d, d) diagonal blocks of C0 (each patch's own second moments), cached: the
+        block-Jacobi preconditioners of the iterative paths (spectral.py, polish.py)."""
+        if getattr(self, "_blocks", None) is None:
+            d, c0 = self.d, self.C0.tocoo()
+            same = c0.row // d == c0.col // d
+            b = np.zeros((self.M, d, d))
+            np.add.at(b, (c0.row[same] // d, c0.row[same] % d, c0.col[same] % d), c0.data[same])
+            self._blocks = b
+        return self._blocks
+
     def as_linear_operator(self) -> spla.LinearOperator:
         return spla.LinearOperator(
             (self.n, self.n), matvec=self.matvec, matmat=self.matvec, dtype=np.float64

@@ -25,6 +25,7 @@ from mvreg.solver.shift_invert import (
     ShiftedInverse,
     direct_feasible,
     newton_direct_feasible,
+    skew_basis,
 )
 
 # Newton stops when ||grad||_F / (lambda_max sqrt(n)) is below this (~ the rounding floor).
@@ -57,6 +58,30 @@ def _horizontal(xb: np.ndarray, z: np.ndarray) -> np.ndarray:
     w = np.einsum("mba,mbc->ac", xb, zb) / m  # mean of X_i^T z_i
     w = 0.5 * (w - w.T)
     return (zb - xb @ w).reshape(-1, d)
+
+
+def tangent_block_jacobi(op, xb: np.ndarray, mi: np.ndarray):
+    """Block-Jacobi preconditioner of the Riemannian Hessian where no factorization is
+    affordable: per patch, the Hessian restricted to its own tangent directions
+    xi_i = X_i Omega (Omega skew), h_ab = <X_i E_a, Cd_i X_i E_b - X_i E_b M_i> with Cd_i the
+    diagonal block of C0, made positive definite (eigenvalues by magnitude, floored).
+    Returns prec(g) = -P g, the form of a Newton step that :func:`_precondition` takes."""
+    d = op.d
+    e = skew_basis(d)  # (k, d, d)
+    g_loc = np.einsum("mba,mbc,mcd->mad", xb, op.diagonal_blocks(), xb)  # X_i^T Cd_i X_i
+    h = np.einsum("apq,mpr,brq->mab", e, g_loc, e) - np.einsum("apq,bpr,mrq->mab", e, e, mi)
+    w, v = np.linalg.eigh(0.5 * (h + h.transpose(0, 2, 1)))
+    w = np.abs(w)
+    w = np.maximum(w, 1e-8 * max(float(w.max()), 1e-300))
+    h_inv = np.einsum("mab,mb,mcb->mac", v, 1.0 / w, v)
+
+    def prec(g):
+        gb = g.reshape(-1, d, d)
+        coef = np.einsum("apq,mrp,mrq->ma", e, xb, gb)  # <X_i E_a, g_i>
+        om = np.einsum("mab,mb->ma", h_inv, coef)
+        return -np.einsum("mpq,ma,aqr->mpr", xb, om, e).reshape(g.shape)
+
+    return prec
 
 
 def _precondition(prec, xb: np.ndarray, r: np.ndarray) -> np.ndarray:
@@ -120,6 +145,8 @@ def polish(
             # The factorization from an earlier point no longer preconditions well: refresh.
             prec = make_prec(X, CX)
         mi = sym(np.einsum("mba,mbc->mac", xb, CX.reshape(-1, d, d)))
+        if precondition and op.M > 1 and not use_direct:
+            prec = tangent_block_jacobi(op, xb, mi)  # no factorization affordable
 
         def hess(v, xb=xb, mi=mi):
             cv = op.matvec(v).reshape(-1, d, d)

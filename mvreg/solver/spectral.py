@@ -79,10 +79,7 @@ def block_jacobi(op) -> spla.LinearOperator:
     """The inverse of the d x d diagonal blocks of C0 (the data's own blocks) as an
     operator: LOBPCG's preconditioner where no factorization is affordable."""
     d, m = op.d, op.M
-    c0 = op.C0.tocoo()
-    same = c0.row // d == c0.col // d
-    blocks = np.zeros((m, d, d))
-    np.add.at(blocks, (c0.row[same] // d, c0.row[same] % d, c0.col[same] % d), c0.data[same])
+    blocks = op.diagonal_blocks()
     ridge = 1e-12 * np.maximum(np.trace(blocks, axis1=1, axis2=2), 1e-300)
     inv = np.linalg.inv(blocks + ridge[:, None, None] * np.eye(d))
 

@@ -26,6 +26,7 @@ from mvreg.config.refine import RefineConfig
 from mvreg.config.robust import RobustConfig
 from mvreg.executor import Executor
 from mvreg.geometry import (
+    cross3,
     invert_transform,
     rotation_angle_deg,
     rotation_from_vector,
@@ -92,8 +93,8 @@ def _gauss_newton_step(terms, pair_w, c, col, radius) -> np.ndarray:
             continue
         wt = wp / (1.0 + (t.r / c) ** 2)  # Cauchy weights times the pair's weight
         # d r / d (w_j * radius, v_j) and d r / d (w_i * radius, v_i)
-        jb = np.hstack([np.cross(t.b, t.n) / radius, t.n])
-        ja = -np.hstack([np.cross(t.a, t.n) / radius, t.n])
+        jb = np.hstack([cross3(t.b, t.n) / radius, t.n])
+        ja = -np.hstack([cross3(t.a, t.n) / radius, t.n])
         sides = [(col[s], jac) for s, jac in ((t.j, jb), (t.i, ja)) if s in col]
         for o1, j1 in sides:
             g[o1 : o1 + 6] += j1.T @ (wt * t.r)

@@ -16,13 +16,14 @@ KD-trees, no random choices); KD-trees of a scan are built once and cached on it
 
 from __future__ import annotations
 
+import math
 from collections.abc import Sequence
 
 import numpy as np
 from scipy.spatial import cKDTree
 
 from mvreg.config.align import AlignConfig
-from mvreg.geometry import rotation_from_vector, transform_points
+from mvreg.geometry import cross3, rotation_from_vector, transform_points
 from mvreg.pairwise.preprocess import PreprocessedScan
 
 
@@ -60,10 +61,8 @@ def icp_point_to_plane(
     centroid = source.mean(0)
 
     def distance(Ta, Tb):  # how far the two poses put the source points apart (about)
-        turn = np.linalg.norm(Ta[:3, :3] - Tb[:3, :3]) / np.sqrt(2.0)
-        return turn * extent + np.linalg.norm(
-            (Ta[:3, :3] - Tb[:3, :3]) @ centroid + Ta[:3, 3] - Tb[:3, 3]
-        )
+        turn = _norm(Ta[:3, :3] - Tb[:3, :3]) / np.sqrt(2.0)
+        return turn * extent + _norm((Ta[:3, :3] - Tb[:3, :3]) @ centroid + Ta[:3, 3] - Tb[:3, 3])
 
     before, previous = None, T  # the poses two steps and one step back
     for _ in range(max_iterations):
@@ -84,11 +83,18 @@ def icp_point_to_plane(
         step[:3, :3] = rotation_from_vector(x[:3])
         step[:3, 3] = x[3:]
         before, previous, T = previous, T, step @ T
-        if np.linalg.norm(x[:3]) * extent + np.linalg.norm(x[3:]) < tolerance * max_dist:
+        if _norm(x[:3]) * extent + _norm(x[3:]) < tolerance * max_dist:
             break
         if before is not None and distance(T, before) < tolerance * max_dist:
             break
     return T
+
+
+def _norm(x: np.ndarray) -> float:
+    """``np.linalg.norm(x)`` (2-norm of the flattened array), value for value, without its
+    dispatch (called a few times per ICP iteration)."""
+    x = x.ravel()
+    return math.sqrt(float(np.dot(x, x)))
 
 
 def _plane_step(p: np.ndarray, target: np.ndarray, n: np.ndarray) -> np.ndarray | None:
@@ -105,7 +111,7 @@ def _plane_step(p: np.ndarray, target: np.ndarray, n: np.ndarray) -> np.ndarray 
     scale = float(np.sqrt(np.mean(np.einsum("ij,ij->i", arm, arm)))) + 1e-300
     arm /= scale
     a = np.empty((len(p), 6))
-    a[:, :3] = np.cross(arm, n)
+    a[:, :3] = cross3(arm, n)
     a[:, 3:] = n
     ata = a.T @ a
     try:

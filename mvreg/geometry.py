@@ -6,6 +6,8 @@ Convention everywhere: ``p_world = R_world_local @ p_local + t_world_local``; a 
 
 from __future__ import annotations
 
+import math
+
 import numpy as np
 
 
@@ -76,6 +78,13 @@ def cross3(a: np.ndarray, b: np.ndarray) -> np.ndarray:
     np.subtract(a2 * b0, a0 * b2, out=out[..., 1])
     np.subtract(a0 * b1, a1 * b0, out=out[..., 2])
     return out
+
+
+def norm2(x: np.ndarray) -> float:
+    """``np.linalg.norm(x)`` (2-norm of the flattened array), value for value, without its
+    dispatch (called a few times per ICP iteration)."""
+    x = x.ravel()
+    return math.sqrt(float(np.dot(x, x)))
 
 
 def rotation_from_vector(w: np.ndarray) -> np.ndarray:

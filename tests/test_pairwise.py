@@ -291,15 +291,14 @@ def test_relative_residual_rule():
 def test_fast_helpers_match_numpy_bit_for_bit():
     """ICP's cross product and norms skip NumPy's dispatch (called hundreds of thousands
     of times a run): they must give the same floats, or results would change."""
-    from mvreg.geometry import cross3
-    from mvreg.pairwise.icp import _norm
+    from mvreg.geometry import cross3, norm2
 
     rng = np.random.default_rng(0)
     for n in (1, 7, 400, 5000):
         a = rng.normal(size=(n, 3)) * rng.uniform(1e-6, 1e6, (n, 1))
         b = rng.normal(size=(n, 3))
         assert np.array_equal(cross3(a, b), np.cross(a, b))
-        assert _norm(a) == float(np.linalg.norm(a)) and _norm(a[0]) == float(np.linalg.norm(a[0]))
+        assert norm2(a) == float(np.linalg.norm(a)) and norm2(a[0]) == float(np.linalg.norm(a[0]))
 
 
 def test_mutual_correspondences():

@@ -16,14 +16,13 @@ KD-trees, no random choices); KD-trees of a scan are built once and cached on it
 
 from __future__ import annotations
 
-import math
 from collections.abc import Sequence
 
 import numpy as np
 from scipy.spatial import cKDTree
 
 from mvreg.config.align import AlignConfig
-from mvreg.geometry import cross3, rotation_from_vector, transform_points
+from mvreg.geometry import cross3, norm2, rotation_from_vector, transform_points
 from mvreg.pairwise.preprocess import PreprocessedScan
 
 
@@ -61,8 +60,8 @@ def icp_point_to_plane(
     centroid = source.mean(0)
 
     def distance(Ta, Tb):  # how far the two poses put the source points apart (about)
-        turn = _norm(Ta[:3, :3] - Tb[:3, :3]) / np.sqrt(2.0)
-        return turn * extent + _norm((Ta[:3, :3] - Tb[:3, :3]) @ centroid + Ta[:3, 3] - Tb[:3, 3])
+        turn = norm2(Ta[:3, :3] - Tb[:3, :3]) / np.sqrt(2.0)
+        return turn * extent + norm2((Ta[:3, :3] - Tb[:3, :3]) @ centroid + Ta[:3, 3] - Tb[:3, 3])
 
     before, previous = None, T  # the poses two steps and one step back
     for _ in range(max_iterations):
@@ -83,18 +82,11 @@ def icp_point_to_plane(
         step[:3, :3] = rotation_from_vector(x[:3])
         step[:3, 3] = x[3:]
         before, previous, T = previous, T, step @ T
-        if _norm(x[:3]) * extent + _norm(x[3:]) < tolerance * max_dist:
+        if norm2(x[:3]) * extent + norm2(x[3:]) < tolerance * max_dist:
             break
         if before is not None and distance(T, before) < tolerance * max_dist:
             break
     return T
-
-
-def _norm(x: np.ndarray) -> float:
-    """``np.linalg.norm(x)`` (2-norm of the flattened array), value for value, without its
-    dispatch (called a few times per ICP iteration)."""
-    x = x.ravel()
-    return math.sqrt(float(np.dot(x, x)))
 
 
 def _plane_step(p: np.ndarray, target: np.ndarray, n: np.ndarray) -> np.ndarray | None:

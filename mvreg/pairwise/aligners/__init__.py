@@ -15,6 +15,7 @@ from mvreg.pairwise.aligners.base import (
 # The registry: one line per method.
 from mvreg.pairwise.aligners.feature_ransac import FeatureRansacAligner, align_pair
 from mvreg.pairwise.aligners.icp_guess import IcpGuessAligner
+from mvreg.pairwise.aligners.planes import PlaneAligner
 from mvreg.pairwise.aligners.rotation_search import RotationSearchAligner, search_pair
 
 __all__ = [
@@ -23,6 +24,7 @@ __all__ = [
     "FeatureRansacAligner",
     "IcpGuessAligner",
     "PairwiseAligner",
+    "PlaneAligner",
     "RotationSearchAligner",
     "align_pair",
     "make_aligner",

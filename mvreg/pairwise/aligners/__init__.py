@@ -15,7 +15,6 @@ from mvreg.pairwise.aligners.base import (
 # The registry: one line per method.
 from mvreg.pairwise.aligners.feature_ransac import FeatureRansacAligner, align_pair
 from mvreg.pairwise.aligners.icp_guess import IcpGuessAligner
-from mvreg.pairwise.aligners.planes import PlaneAligner
 from mvreg.pairwise.aligners.rotation_search import RotationSearchAligner, search_pair
 
 __all__ = [
@@ -24,7 +23,6 @@ __all__ = [
     "FeatureRansacAligner",
     "IcpGuessAligner",
     "PairwiseAligner",
-    "PlaneAligner",
     "RotationSearchAligner",
     "align_pair",
     "make_aligner",

@@ -228,6 +228,8 @@ def main(argv: list[str] | None = None) -> dict:
     ap.add_argument("--out", type=Path, default=ROOT / "docs" / "benchmarks")
     ap.add_argument("--work", type=Path, required=True, help="scan/result folder")
     ap.add_argument("--render", action="store_true", help="only rewrite OUT's .md from its .json")
+    ap.add_argument("--quick", action="store_true",
+                    help="smallest case: builtin:1, seed 0, 5 views, ~1500 points, no bunny")  # fmt: skip
     ap.add_argument(
         "--resume", action="store_true",
         help="keep the runs (and bunny) of OUT/peers_generalization.json; run the others",
@@ -241,6 +243,8 @@ def main(argv: list[str] | None = None) -> dict:
     bg = _bg()
     cases = [(m, s, r) for r in args.resolutions.split(",") for s in range(args.seeds)
              for m in bg.corpus(args.meshes)]  # fmt: skip
+    if args.quick:
+        cases, args.views, args.no_bunny = [("builtin:1", 0, "tiny")], 5, True
     meta = {
         "date": datetime.datetime.now(datetime.timezone.utc).strftime("%Y-%m-%d %H:%M UTC"),
         "command": "python " + " ".join(shlex.quote(a) for a in [

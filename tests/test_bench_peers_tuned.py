@@ -72,3 +72,30 @@ def test_open3d_tuned_recovers_whole_object_clouds_in_random_frames():
     assert len(r["tree"]) == 4
     e = pose_errors(np.stack([r["T"][k] for k in range(5)]), np.stack(T_true))
     assert e.rotation_deg.max() < 0.5, e.rotation_deg
+
+
+def test_peers_generalization_quick_run(tmp_path):
+    """scripts/bench_peers_generalization.py on its smallest case: every method's row is
+    consistent, mvreg's matches what the generalization benchmark reads from its run,
+    and the report is written."""
+    pytest.importorskip("kiss_matcher")
+    import json
+
+    from bench.peers_generalization import METHODS, main
+
+    summary = main(["--quick", "--work", str(tmp_path / "work"), "--out", str(tmp_path / "out")])
+    doc = json.loads((tmp_path / "out" / "peers_generalization.json").read_text())
+    (row,) = doc["rows"]
+    assert (row["mesh"], row["seed"], row["resolution"]) == ("builtin:1", 0, "tiny")
+    for m in METHODS:
+        x = row[m]
+        assert 0 <= x["within"] <= x["registered"] <= 5 and x["seconds"] > 0
+        assert x["fully_within"] == (x["within"] == 5)
+        assert x["claimed_wrong"] == bool(x["claims_all"] and x["worst_rot"] and x["worst_rot"] > 2)
+        assert summary[m]["nonsymmetric_runs"] == 1
+    out = tmp_path / "work" / "builtin_1-s0-tiny-v5" / "out"
+    report = json.loads((out / "report.json").read_text())
+    assert row["mvreg"]["registered"] == len(report["registered"])
+    assert row["mvreg"]["claims_all"] == (row["mvreg"]["exit_code"] == 0)
+    md = (tmp_path / "out" / "peers_generalization.md").read_text()
+    assert "open3d-tuned" in md and "kiss-matcher+mvreg" in md and "builtin:1" in md

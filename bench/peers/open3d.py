@@ -17,8 +17,9 @@ import numpy as np
 from bench.peers.graph import poses_from_tree
 
 
-def o3d_prepare(points: np.ndarray, v: float) -> dict:
-    """The reconstruction system's preprocess_point_cloud + multiscale ICP levels."""
+def o3d_prepare(points: np.ndarray, v: float, sensor: np.ndarray | None = None) -> dict:
+    """The reconstruction system's preprocess_point_cloud + multiscale ICP levels; with
+    ``sensor`` (scan frame), normals oriented towards it (:mod:`bench.peers.open3d_tuned`)."""
     import open3d as o3d
 
     reg = o3d.pipelines.registration
@@ -27,6 +28,8 @@ def o3d_prepare(points: np.ndarray, v: float) -> dict:
     for s in (v, v / 2, v / 4):
         d = pcd.voxel_down_sample(s)
         d.estimate_normals(o3d.geometry.KDTreeSearchParamHybrid(radius=2.0 * s, max_nn=30))
+        if sensor is not None:
+            d.orient_normals_towards_camera_location(np.asarray(sensor, dtype=np.float64))
         levels.append(d)
     fpfh = reg.compute_fpfh_feature(
         levels[0], o3d.geometry.KDTreeSearchParamHybrid(radius=5.0 * v, max_nn=100)

@@ -1,8 +1,8 @@
 """Open3D multiway registration, tuned (issue 13, item 4): what a careful Open3D user
 would build, rather than the tutorial's settings of :mod:`bench.peers.open3d`.
 
-Per scan (:func:`prepare`): voxel levels ``v``, ``v/2``, ``v/4`` (``v`` = mvreg's
-feature voxel of the run, the same for every method); normals (radius 2 voxels, 30
+Per scan (:func:`bench.peers.open3d.o3d_prepare` given the sensor): voxel levels ``v``,
+``v/2``, ``v/4`` (``v`` = mvreg's feature voxel of the run, the same for every method); normals (radius 2 voxels, 30
 neighbours) **oriented towards the sensor**, FPFH (radius 5 ``v``) on the coarse level.
 Per pair (:func:`align`), every pair: RANSAC on mutual FPFH matches (distance 1.5 ``v``,
 edge-length and distance checkers, and a normal checker, meaningful now that normals
@@ -29,26 +29,9 @@ import time
 import numpy as np
 
 from bench.peers.graph import poses_from_tree
+from bench.peers.open3d import o3d_prepare
 
 MIN_OVERLAP = 0.3
-
-
-def prepare(points: np.ndarray, v: float, sensor: np.ndarray) -> dict:
-    """Voxel levels with normals oriented towards ``sensor`` (scan frame), FPFH."""
-    import open3d as o3d
-
-    reg = o3d.pipelines.registration
-    pcd = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(points))
-    levels = []
-    for s in (v, v / 2, v / 4):
-        d = pcd.voxel_down_sample(s)
-        d.estimate_normals(o3d.geometry.KDTreeSearchParamHybrid(radius=2.0 * s, max_nn=30))
-        d.orient_normals_towards_camera_location(np.asarray(sensor, dtype=np.float64))
-        levels.append(d)
-    fpfh = reg.compute_fpfh_feature(
-        levels[0], o3d.geometry.KDTreeSearchParamHybrid(radius=5.0 * v, max_nn=100)
-    )
-    return {"levels": levels, "fpfh": fpfh}
 
 
 def align(src: dict, tgt: dict, v: float, seed: int) -> dict:
@@ -113,7 +96,7 @@ def run_open3d_tuned(
     reg = o3d.pipelines.registration
     n = len(points)
     t0 = time.perf_counter()
-    prep = [prepare(p, v, c) for p, c in zip(points, sensors, strict=True)]
+    prep = [o3d_prepare(p, v, c) for p, c in zip(points, sensors, strict=True)]
     pairs = {}
     for i in range(n):
         for j in range(i + 1, n):  # j (source) onto i (target): T_i_j

@@ -23,6 +23,40 @@ def test_on_cycle_needs_a_closed_loop():
     assert on_cycle(loop) == {0, 1, 2}
 
 
+def test_a_scan_fitting_the_others_clearly_worse_is_unverified():
+    """The pairs' relative residual rule, scan by scan: the reference leaves the scan out,
+    a cycle does not exempt it, and noise-free residuals pass."""
+    from types import SimpleNamespace
+
+    from mvreg.config.align import AlignConfig
+    from mvreg.globalstage.probes import relative_residual_outliers
+    from mvreg.globalstage.verify import ScanVerification
+
+    acfg = AlignConfig()  # relative_residual_factor 1.5, floor 0.05 fine voxels
+    pre = [SimpleNamespace(noise=0.01, fine_voxel_size=0.01) for _ in range(5)]
+
+    def run(ratios, evidence="cycle"):
+        out = {
+            s: ScanVerification(status="verified", evidence=evidence, model_residual_ratio=r)
+            for s, r in enumerate(ratios)
+        }
+        return relative_residual_outliers(out, pre, acfg), out
+
+    # fuze sparse seed 1: 1.74 against 1.17 and 1.02 (median 1.095: 1.59x)
+    marked, out = run([1.74, 1.17, 1.02])
+    assert marked == [0] and out[0].status == "unverified" and out[0].evidence == ""
+    assert "1.74x the noise" in out[0].reason and out[1].status == "verified"
+    # (with itself in the reference, median 1.17, it would be 1.49x and pass)
+    marked, _ = run([1.46, 1.0, 1.0, 0.95, 1.05], evidence="model")  # 1.46x: passes
+    assert marked == []
+    marked, _ = run([1.6, 1.0, 1.0, 0.95, 1.05], evidence="model")
+    assert marked == [0]
+    # two others at least; noise-free scans (median residual 0.02 fine voxels) pass
+    assert run([3.0, 1.0])[0] == []
+    pre[0] = SimpleNamespace(noise=1e-5, fine_voxel_size=0.01)
+    assert run([2.0, 1.0, 1.0])[0] == []
+
+
 def test_normal_matrix_finds_the_free_rotation_of_a_cylinder():
     rng = np.random.default_rng(0)
     a = rng.uniform(0, 2 * np.pi, 2000)

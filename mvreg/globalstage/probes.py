@@ -6,7 +6,9 @@
   started a few voxels along it that does not come back and lands on a fit as good), or
   None;
 * :func:`unsettled`: why the pose is not a fixed point of point-to-plane ICP against the
-  model (it moves to a clearly better fit), or "".
+  model (it moves to a clearly better fit), or "";
+* :func:`relative_residual_outliers`: the verified scans that fit the others clearly worse
+  than the other verified scans do (the pairs' relative residual rule, scan by scan).
 
 Pure functions on world points, normals and a
 :class:`~mvreg.globalstage.scan_model.ScanModel`; thresholds from the data (feature
@@ -136,3 +138,39 @@ def unsettled(
             f"residual {ratio:.1f}x vs {ratio0:.1f}x the noise)"
         )
     return ""
+
+
+def relative_residual_outliers(out: dict, pre, acfg: AlignConfig) -> list[int]:
+    """Mark ``unverified`` the verified scans whose residual against the model of the
+    others is above ``relative_residual_factor`` times the median of the other verified
+    scans' (at least two of them): the rule the pairs obey
+    (:func:`mvreg.pairwise.align.reject_relative_outliers`), for a scan against the
+    others, with a reference that leaves the scan itself out. A scan on a near-symmetric
+    shape placed at a turned copy, confirmed by a cycle of two wrong pairs, fits the
+    others worse than the right ones do (fuze sparse seed 1: 1.74x the noise against
+    1.17 and 1.02; docs/design/verification.md). As for pairs, a median residual below
+    ``relative_residual_floor_fine_voxels`` fine voxels (noise-free scans) passes.
+    Decided for all scans against the same references; returns the scans marked."""
+    factor = acfg.relative_residual_factor
+    ratio = {
+        s: v.model_residual_ratio
+        for s, v in out.items()
+        if v.status == "verified"
+        and v.model_residual_ratio is not None
+        and np.isfinite(v.model_residual_ratio)
+    }
+    if factor is None or len(ratio) < 3:
+        return []
+    marked = []
+    for s, r in ratio.items():
+        reference = float(np.median([x for k, x in ratio.items() if k != s]))
+        fine_voxels = r * pre[s].noise / pre[s].fine_voxel_size
+        if r > factor * reference and fine_voxels > acfg.relative_residual_floor_fine_voxels:
+            marked.append(s)
+            v = out[s]
+            v.status, v.evidence = "unverified", ""
+            v.reason = (
+                f"residual against the other scans {r:.2f}x the noise, above {factor:g}x "
+                f"the median of the other verified scans' ({reference:.2f})"
+            )
+    return marked

@@ -93,7 +93,7 @@ from mvreg.executor import single_threaded_blas
 from mvreg.geometry import invert_transform, transform_points
 from mvreg.globalstage.graph import bridge_groups, conflict_cuts, main_block, on_cycle, one_side
 from mvreg.globalstage.model_search import axis_turns, distant_alternative, self_symmetry
-from mvreg.globalstage.probes import degenerate_direction, unsettled
+from mvreg.globalstage.probes import degenerate_direction, relative_residual_outliers, unsettled
 from mvreg.globalstage.robust import pair_disagreements
 from mvreg.globalstage.scan_model import (
     model_fit,
@@ -215,6 +215,7 @@ def verify_scans(
     for s in scans:
         out[s].conflicting = sorted({k for k, _ in conflicts[s]})
     _settle_conflicts(out, conflicts, scans)
+    relative_residual_outliers(out, pre, acfg)
     if discrete:
         search_alternatives(out, graph, pre, T_world_scan, voxel, acfg, results, executor)
     return out

@@ -56,18 +56,29 @@ def o3d_pair(src: dict, tgt: dict, v: float):
     if ok:
         info0 = reg.get_information_matrix_from_point_clouds(a, b, dist, T)
         ok = info0[5, 5] / min(len(a.points), len(b.points)) >= 0.3
-    for k, iters in enumerate((50, 30, 14)):
+    T, _ = multiscale_icp(src, tgt, T, (dist, dist, dist))
+    info = reg.get_information_matrix_from_point_clouds(
+        src["levels"][-1], tgt["levels"][-1], dist, T
+    )
+    return bool(ok), T, np.asarray(info)
+
+
+def multiscale_icp(src: dict, tgt: dict, T: np.ndarray, distances) -> tuple[np.ndarray, float]:
+    """Point-to-plane ICP on the three levels (50, 30, 14 iterations), coarse to fine, at
+    ``distances`` (one per level): (T_target_source, fitness on the finest level)."""
+    import open3d as o3d
+
+    reg = o3d.pipelines.registration
+    fitness = 0.0
+    for k, (dist, iters) in enumerate(zip(distances, (50, 30, 14), strict=True)):
         r = reg.registration_icp(
             src["levels"][k], tgt["levels"][k], dist, T,
             reg.TransformationEstimationPointToPlane(),
             reg.ICPConvergenceCriteria(relative_fitness=1e-6, relative_rmse=1e-6,
                                        max_iteration=iters),
         )  # fmt: skip
-        T = np.asarray(r.transformation).copy()
-    info = reg.get_information_matrix_from_point_clouds(
-        src["levels"][-1], tgt["levels"][-1], dist, T
-    )
-    return bool(ok), T, np.asarray(info)
+        T, fitness = np.asarray(r.transformation).copy(), float(r.fitness)
+    return T, fitness
 
 
 def o3d_optimize(n: int, edges: list, init: dict[int, np.ndarray], v: float) -> dict:

@@ -29,7 +29,7 @@ import time
 import numpy as np
 
 from bench.peers.graph import poses_from_tree
-from bench.peers.open3d import o3d_prepare
+from bench.peers.open3d import multiscale_icp, o3d_prepare
 
 MIN_OVERLAP = 0.3
 
@@ -52,15 +52,7 @@ def align(src: dict, tgt: dict, v: float, seed: int) -> dict:
         reg.RANSACConvergenceCriteria(100000, 0.999),
     )  # fmt: skip
     T = np.asarray(r.transformation).copy()
-    fitness = 0.0
-    for k, (scale, iters) in enumerate(((1.0, 50), (0.5, 30), (0.25, 14))):
-        r = reg.registration_icp(
-            src["levels"][k], tgt["levels"][k], dist * scale, T,
-            reg.TransformationEstimationPointToPlane(),
-            reg.ICPConvergenceCriteria(relative_fitness=1e-6, relative_rmse=1e-6,
-                                       max_iteration=iters),
-        )  # fmt: skip
-        T, fitness = np.asarray(r.transformation).copy(), float(r.fitness)
+    T, fitness = multiscale_icp(src, tgt, T, (dist, dist / 2, dist / 4))
     fine_a, fine_b = src["levels"][-1], tgt["levels"][-1]
     info = np.asarray(reg.get_information_matrix_from_point_clouds(fine_a, fine_b, dist / 4, T))
     overlap = float(info[5, 5]) / max(1, min(len(fine_a.points), len(fine_b.points)))

@@ -100,6 +100,36 @@ def test_right_poses_have_no_second_pose(builtin_set):
         assert distant_alternative([s], pre, truth, others, model, voxel, AlignConfig()) is None
 
 
+def test_a_small_turn_beyond_the_agreement_tolerance_is_a_second_pose(builtin_set):
+    """A scan turned about its own centre so that its points move a median 2.5 feature
+    voxels (a sparse idler_riser view 15 deg off moved 3.0): beyond what agreeing pairs
+    allow (1 voxel), so the truth, which a pair's hypothesis proposes, is a second pose
+    that fits better; with the old 3-voxel bound it was never examined."""
+    from mvreg.geometry import invert_transform, transform_points
+    from mvreg.globalstage.model_search import distant_alternative
+    from mvreg.globalstage.scan_model import scan_model
+    from mvreg.pairwise.result import PairResult
+
+    pre, truth, voxel = builtin_set
+    s, k = 2, 3
+    others = [j for j in truth if j != s]
+    pts = transform_points(truth[s], pre[s].fine_points)
+    centre = pts.mean(axis=0)
+    axis = np.array([0.3, -0.5, 0.81]) / np.linalg.norm([0.3, -0.5, 0.81])
+    lever = np.median(np.linalg.norm(np.cross(pts - centre, axis), axis=1))
+    F = np.eye(4)
+    F[:3, :3] = rotation_from_vector(2.5 * voxel / lever * axis)
+    F[:3, 3] = centre - F[:3, :3] @ centre
+    moved = np.median(np.linalg.norm(transform_points(F, pts) - pts, axis=1))
+    assert 2.2 * voxel < moved < 2.8 * voxel
+    T = {j: (F @ truth[j] if j == s else truth[j]) for j in truth}
+    pair = PairResult(s, k, invert_transform(truth[s]) @ truth[k], 0.5, 0.0, 100, 0.5, True, "")
+    model = scan_model(pre, T, others)
+    alt = distant_alternative([s], pre, T, others, model, voxel, AlignConfig(), results=[pair])
+    assert alt is not None and alt.better, alt
+    assert _angle_deg(alt.motion @ T[s], truth[s]) < 0.5
+
+
 def test_leftover_scans_are_placed_on_the_model(builtin_set):
     """Two scans without a pose are placed by searching them against the six others; the
     poses found are the truth's."""

@@ -148,7 +148,7 @@ class SerialExecutor:
 
 def test_rotation_search_needs_no_feature_matches(views):
     _, scales, pre, truth = views
-    quick = SearchConfig(screen_source_points=100, screen_iterations=2)
+    quick = SearchConfig(weak_scans=True, screen_source_points=100, screen_iterations=2)
     res = make_aligner("rotation-search", AlignConfig(), quick, scales=scales, executor=2).align(
         pre[0], pre[1], i=0, j=1
     )
@@ -196,3 +196,35 @@ def test_explicit_scales_give_the_scores_of_the_scans_own(views):
     explicit = score_alignment(pre[0], pre[1], truth, scales=scales)
     assert own.keys() == explicit.keys()
     assert all(np.array_equal(own[k], explicit[k], equal_nan=True) for k in own)
+
+
+def test_a_scan_no_cycle_confirms_has_its_rejected_pairs_searched(views):
+    """Scan 1 with both its pairs rejected (a wrong pose each) is searched again and
+    comes back confirmed by the triangle, within 0.3 deg of the truth; where every scan is
+    confirmed nothing is searched (the very same results come back)."""
+    from dataclasses import replace
+
+    from mvreg.pairwise.consistency import confirmed_scans
+    from mvreg.pairwise.search import confirm_weak_scans
+
+    _, scales, pre, truth = views
+    results = align_pairs(pre, [(0, 1), (0, 2), (1, 2)], AlignConfig(), 0, scales=scales)
+    assert all(r.accepted for r in results)
+    assert confirmed_scans(pre, results, scales=scales) == {0, 1, 2}
+    quick = SearchConfig(weak_scans=True, screen_source_points=100, screen_iterations=2)
+    same = confirm_weak_scans(pre, results, AlignConfig(), quick, scales=scales)
+    assert all(a is b for a, b in zip(same, results, strict=True))
+
+    flip = make_transform(Rotation.from_euler("x", 180, degrees=True).as_matrix(), np.zeros(3))
+    broken = [
+        replace(r, T_i_j=r.T_i_j @ flip, accepted=False, reason="test") if 1 in (r.i, r.j) else r
+        for r in results
+    ]
+    assert confirmed_scans(pre, broken, scales=scales) == set()
+    fixed = confirm_weak_scans(pre, broken, AlignConfig(), quick, scales=scales)
+    assert confirmed_scans(pre, fixed, scales=scales) == {0, 1, 2}
+    assert fixed[0].accepted and fixed[0].stats["search"]
+    rot, trans = _errors(fixed[0].T_i_j, truth)
+    assert rot < 0.3 and trans < 0.003
+    assert fixed[1] is broken[1]  # (0, 2) was never rejected
+    assert fixed[2].accepted and fixed[2].stats["search"]

@@ -214,3 +214,57 @@ def test_main_block_leaves_out_groups_hanging_on_one_pair():
     square_and_triangle |= {5: {4, 6}, 6: {4, 5}}
     assert main_block(square_and_triangle) == {0, 1, 2, 3}
     assert main_block({0: {1}, 1: {0, 2}, 2: {1}}) == set()  # a tree has no block
+
+
+def test_a_scan_linked_only_to_undetermined_scans_is_undetermined():
+    """Verified scans whose agreeing pairs all lead to undetermined scans become
+    undetermined; one partner with a determined pose keeps a scan verified, and a scan
+    verified by the model alone (no agreeing pair) is left as it is."""
+    from mvreg.globalstage.probes import resting_on_undetermined
+    from mvreg.globalstage.verify import ScanVerification
+
+    out = {s: ScanVerification(status="verified", evidence="cycle") for s in range(6)}
+    out[1].status = out[4].status = "undetermined"
+    out[5].evidence = "model"
+    # 0 - 1 and 0 - 4 (both open), 2 - 1 and 2 - 3 (one determined partner), 5 alone
+    graph = {0: {1, 4}, 1: {0, 2}, 2: {1, 3}, 3: {2}, 4: {0}, 5: set()}
+    names = [f"scan_{k}" for k in range(6)]
+    assert resting_on_undetermined(out, graph, names) == [0]
+    assert [out[s].status for s in range(6)] == [
+        "undetermined", "undetermined", "verified", "verified", "undetermined", "verified",
+    ]  # fmt: skip
+    assert out[0].evidence == "" and out[0].degenerate_dof == "that of scan_1, scan_4"
+    assert "undetermined (scan_1, scan_4)" in out[0].reason
+
+
+def test_final_statuses_leave_no_scan_verified_by_partners_that_are_not():
+    """On the statuses a run ends with: scans confirmed only through undetermined scans
+    become undetermined, and that propagates (2 rests on 1, 1 on 0); a cycle whose
+    partners were all dropped no longer confirms (3: unverified); a scan with one verified
+    partner, or verified by the model check with dropped partners, stays verified."""
+    from mvreg.globalstage.probes import resting_on_open_partners
+    from mvreg.globalstage.verify import ScanVerification
+
+    names = [f"scan_{k}" for k in range(8)]
+
+    def ver(status, evidence, *partners):
+        return ScanVerification(
+            status, evidence=evidence, agreeing_pairs=[names[k] for k in partners]
+        )
+
+    out = {
+        0: ver("undetermined", ""),
+        1: ver("verified", "cycle", 0),
+        2: ver("verified", "model", 1),
+        3: ver("verified", "cycle", 6),
+        4: ver("verified", "cycle", 0, 5),
+        5: ver("verified", "cycle", 4),
+        6: ver("unverified", ""),
+        7: ver("verified", "model", 6),
+    }
+    assert resting_on_open_partners(out, names) == [1, 3, 2]
+    assert [out[s].status for s in range(8)] == [
+        "undetermined", "undetermined", "undetermined", "unverified",
+        "verified", "verified", "unverified", "verified",
+    ]  # fmt: skip
+    assert "(scan_6)" in out[3].reason and out[1].degenerate_dof == "that of scan_0"

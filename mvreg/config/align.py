@@ -96,6 +96,12 @@ class SearchConfig(BaseModel):
     model_config = ConfigDict(extra="forbid")
 
     enabled: bool = True
+    weak_scans: bool = Field(
+        False,
+        description="search the rejected pairs of scans no cycle of pairs confirms "
+        "(off by default: on unseen parts it also confirms wrong pairs; docs/benchmarks/"
+        "generalization.md)",
+    )
     partners: int = Field(3, ge=1, le=1000, description="scans of the connected set tried per scan")
     offset_deg: float = Field(20.0, ge=0, le=90, description="turn of the group's copies")
     screen_source_points: int = Field(500, ge=50)

@@ -225,7 +225,7 @@ def distant_alternative(
     model: ScanModel,
     voxel: float,
     acfg: AlignConfig,
-    far_voxels: float = 3.0,
+    far_voxels: float = 2.0,
     max_source: int = 500,
     max_refined: int = 4,
     rounds: int = 2,

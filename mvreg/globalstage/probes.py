@@ -8,7 +8,9 @@
 * :func:`unsettled`: why the pose is not a fixed point of point-to-plane ICP against the
   model (it moves to a clearly better fit), or "";
 * :func:`relative_residual_outliers`: the verified scans that fit the others clearly worse
-  than the other verified scans do (the pairs' relative residual rule, scan by scan).
+  than the other verified scans do (the pairs' relative residual rule, scan by scan);
+* :func:`resting_on_undetermined`: the verified scans whose pairs link them only to
+  undetermined scans.
 
 Pure functions on world points, normals and a
 :class:`~mvreg.globalstage.scan_model.ScanModel`; thresholds from the data (feature
@@ -174,3 +176,66 @@ def relative_residual_outliers(out: dict, pre, acfg: AlignConfig) -> list[int]:
                 f"the median of the other verified scans' ({reference:.2f})"
             )
     return marked
+
+
+def resting_on_undetermined(out: dict, graph: dict, names) -> list[int]:
+    """Mark ``undetermined`` the verified scans whose agreeing pairs (``graph``: {scan:
+    partners}) all link them to undetermined scans: what the pairs confirm is the pose
+    relative to those scans, and where their pose is open, so is this one's (cycloidal
+    dense seed 1, with searched pairs: two scans confirmed only by cycles through scans a
+    turn leaves open, 9.4 deg apart). Decided on the statuses before any is marked; scans
+    verified by the model alone (no agreeing pair) are not affected. Not caught: a group
+    of verified scans that confirm each other and reach the rest only through open scans.
+    Returns the scans marked, in order."""
+    open_ = {s for s, v in out.items() if v.status == "undetermined"}
+    marked = [
+        s
+        for s, v in sorted(out.items())
+        if v.status == "verified" and graph.get(s) and graph[s] <= open_
+    ]
+    for s in marked:
+        v, partners = out[s], ", ".join(names[k] for k in sorted(graph[s]))
+        v.status, v.evidence, v.degenerate_dof = "undetermined", "", f"that of {partners}"
+        v.reason = f"its pairs link it only to scans whose pose is undetermined ({partners})"
+    return marked
+
+
+def resting_on_open_partners(out: dict, names) -> list[int]:
+    """On the final statuses (after every search, drop and placement): mark the verified
+    scans that still rest on partners whose poses are not verified, until none changes.
+
+    A verified scan's ``agreeing_pairs`` are what confirm it relative to the rest. When
+    none of those partners ended verified and at least one is ``undetermined``, the scan
+    is ``undetermined`` too (:func:`resting_on_undetermined`: what the pairs fix is the
+    pose relative to scans whose pose is open). When none ended verified or undetermined
+    (dropped, or placed elsewhere) and its evidence was a cycle, that cycle no longer
+    exists: ``unverified``. Scans verified by the model check keep that evidence unless
+    their partners are open. Cycloidal dense seed 0 with searched pairs: the search
+    marked seven scans undetermined after the last check, and two scans verified through
+    them stayed "verified", 123 deg apart. ``out``: {scan: ScanVerification}, changed in
+    place. Returns the scans marked, in order."""
+    index = {n: k for k, n in enumerate(names)}
+    marked: list[int] = []
+    while True:
+        status = {s: v.status for s, v in out.items()}
+        step = []
+        for s, v in sorted(out.items()):
+            partners = [index[n] for n in v.agreeing_pairs if n in index]
+            if v.status != "verified" or not partners:
+                continue
+            states = {status.get(k, "unregistered") for k in partners}
+            if "verified" in states or ("undetermined" not in states and v.evidence != "cycle"):
+                continue
+            step.append((s, "undetermined" in states, partners))
+        for s, open_, partners in step:
+            v, listed = out[s], ", ".join(names[k] for k in partners)
+            v.evidence = ""
+            if open_:
+                v.status, v.degenerate_dof = "undetermined", f"that of {listed}"
+                v.reason = f"its pairs link it only to scans whose pose is not verified ({listed})"
+            else:
+                v.status = "unverified"
+                v.reason = f"the scans its pairs agree with ({listed}) have no verified pose"
+        marked += [s for s, *_ in step]
+        if not step:
+            return marked

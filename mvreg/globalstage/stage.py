@@ -24,6 +24,7 @@ from mvreg.config import RegisterConfig
 from mvreg.executor import Executor
 from mvreg.globalstage.joint_icp import joint_icp
 from mvreg.globalstage.place import place_leftovers
+from mvreg.globalstage.probes import resting_on_open_partners
 from mvreg.globalstage.refine import prepare_dense_levels, refine_rounds
 from mvreg.globalstage.robust import cycle_check, final_check, robust_rounds
 from mvreg.globalstage.solve import GlobalSolution, TrackSolver
@@ -171,6 +172,9 @@ class GlobalStage:
             if placed and self.plan.final_check:
                 self._polish(ctx, pre, out, dropped)
                 timed("polish")
+        # The statuses as they ended: a search or a drop after a scan's last check may
+        # leave it resting on partners whose poses are no longer verified.
+        dropped = sorted({*dropped, *resting_on_open_partners(ver, [p.name for p in pre])})
         out.results = _every_pair(results, out.results)
         return out, ver, dropped
 

@@ -58,7 +58,9 @@ every group of verified scans that agree with each other but hang on the rest by
 agreeing pair (:func:`bridge_groups`, moved as one rigid body), against the model of the
 others for a second, distant pose (:mod:`mvreg.globalstage.model_search`): one that fits
 as well makes the scan ``"undetermined"`` (``degenerate_dof`` names the discrete turn),
-one that fits better makes it ``"unverified"``.
+one that fits better makes it ``"unverified"``. Last, a verified scan whose agreeing
+pairs all link it to undetermined scans is undetermined too
+(:func:`~mvreg.globalstage.probes.resting_on_undetermined`).
 
 "The other scans" are, for each scan, at most
 :data:`~mvreg.globalstage.scan_model.MODEL_SCANS` of them, those that cover most of its
@@ -93,7 +95,12 @@ from mvreg.executor import single_threaded_blas
 from mvreg.geometry import invert_transform, transform_points
 from mvreg.globalstage.graph import bridge_groups, conflict_cuts, main_block, on_cycle, one_side
 from mvreg.globalstage.model_search import axis_turns, distant_alternative, self_symmetry
-from mvreg.globalstage.probes import degenerate_direction, relative_residual_outliers, unsettled
+from mvreg.globalstage.probes import (
+    degenerate_direction,
+    relative_residual_outliers,
+    resting_on_undetermined,
+    unsettled,
+)
 from mvreg.globalstage.robust import pair_disagreements
 from mvreg.globalstage.scan_model import (
     model_fit,
@@ -218,6 +225,7 @@ def verify_scans(
     relative_residual_outliers(out, pre, acfg)
     if discrete:
         search_alternatives(out, graph, pre, T_world_scan, voxel, acfg, results, executor)
+    resting_on_undetermined(out, graph, [p.name for p in pre])
     return out
 
 

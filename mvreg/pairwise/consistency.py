@@ -91,6 +91,26 @@ def inconsistent_pairs(
         )
 
 
+def confirmed_scans(
+    pre: Sequence[PreprocessedScan],
+    results: Sequence[PairResult],
+    max_voxels: float = 2.0,
+    sample: int = 300,
+    *,
+    scales: Scales | None = None,
+) -> set[int]:
+    """Scans with an accepted pair that closes more consistent cycles (length 3 or 4,
+    discrepancy within ``max_voxels`` feature voxels) than inconsistent ones, and at least
+    one: the scans whose pose some cycle of pairs confirms. Counting only (no geometry)."""
+    edges = {(r.i, r.j): k for k, r in enumerate(results) if r.accepted}
+    if len(edges) < 3:
+        return set()
+    voxel = pre[0].voxel_size if scales is None else scales.voxel
+    check = _Cycles(pre, results, edges, sample, voxel, None, scales, 0)
+    bad, good, _, _ = check.count(set(edges), max_voxels)
+    return {s for e in edges if good[e] > bad[e] for s in e}
+
+
 class _Cycles:
     """The cycles of length 3 and 4 of the accepted pairs, their discrepancies (computed
     once; a cycle is the set of its edges) and the support of the poses they imply."""

@@ -84,8 +84,8 @@ class PreprocessedScan:
             estimated: :mod:`mvreg.pairwise.viewpoint`) for a single view; None: the view
             tests use the orthographic approximation along ``view_direction``.
         num_outliers_removed: raw points dropped as isolated (:func:`outlier_mask`).
-        view_points: around a sensor, one raw point per fine cell, strays kept: where it
-            measured (view tests; the stray filter drops a spinning sensor's far samples).
+        view_points: with a sensor position, one raw point per fine cell, strays kept
+            (view tests; the stray filter drops far and thin-part samples of sparse scans).
     """
 
     name: str
@@ -405,7 +405,7 @@ def _preprocess(scan: Scan, v: float, cfg: PreprocessConfig) -> PreprocessedScan
     )
     if seen_from is not None:  # a single view seen from there
         set_viewpoint(out, seen_from, normals)
-        out.view_points = one_per_cell(scan.points, fine_v) if grow else None
+        out.view_points = one_per_cell(scan.points, fine_v)
     else:
         direction, facing = view_direction(normals)
         out.view_facing = facing

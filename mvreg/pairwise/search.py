@@ -1,4 +1,14 @@
-"""Stage 3b: connect the scans that pairwise alignment left outside the largest set.
+"""Stage 3b: search again for the scans that feature matching placed badly or not at all.
+
+:func:`confirm_weak_scans`: a scan none of whose accepted pairs is confirmed by a cycle
+(:func:`~mvreg.pairwise.consistency.confirmed_scans`) has its rejected candidate pairs
+searched with the aligner ``method`` (nearest scans by global descriptor first) until a
+cycle confirms it or they run out. Sparse scans of machined parts are where this pays:
+feature RANSAC proposes flips of their near-symmetric faces, which the free-space tests
+rightly reject, and the right pose is never proposed (``docs/design/pairwise.md``).
+Runs only for such scans, so data that feature matching handles never pays for it.
+
+:func:`connect_unconnected`:
 
 Takes the preprocessed scans, the pair results so far, the ``align`` and ``search``
 sections; returns the results with searched pairs added or substituted. For each scan
@@ -23,6 +33,7 @@ from mvreg.config.align import AlignConfig, SearchConfig
 from mvreg.executor import Executor
 from mvreg.pairwise.aligners import PairwiseAligner, make_aligner
 from mvreg.pairwise.candidates import global_descriptor
+from mvreg.pairwise.consistency import confirmed_scans
 from mvreg.pairwise.preprocess import PreprocessedScan
 from mvreg.pairwise.result import PairResult
 from mvreg.scales import Scales
@@ -94,5 +105,49 @@ def connect_unconnected(
             if progress is not None:
                 progress(res)
             if res.accepted:
+                break
+    return results
+
+
+def confirm_weak_scans(
+    pre: Sequence[PreprocessedScan],
+    results: list[PairResult],
+    cfg: AlignConfig | None = None,
+    search: SearchConfig | None = None,
+    executor: Executor | int = 2,
+    *,
+    max_voxels: float = 2.0,
+    scales: Scales | None = None,
+    method: str = "rotation-search",
+) -> list[PairResult]:
+    """``results`` with rejected pairs of unconfirmed scans searched again (module
+    docstring); a searched pair replaces the rejected result when it is accepted.
+
+    Scans are visited in index order; ``max_voxels`` is the cycle check's limit.
+    Deterministic: the aligner is, and the order is fixed."""
+    cfg, search = cfg or AlignConfig(), search or SearchConfig()
+    results = list(results)
+    if not search.enabled or not search.weak_scans or len(pre) < 3:
+        return results
+    confirmed = confirmed_scans(pre, results, max_voxels, scales=scales)
+    desc = np.stack([global_descriptor(p) for p in pre])
+    aligner: PairwiseAligner | None = None
+    for a in range(len(pre)):
+        if a in confirmed:
+            continue
+        tried = [k for k, r in enumerate(results) if a in (r.i, r.j) and not r.accepted]
+        other = [results[k].j if results[k].i == a else results[k].i for k in tried]
+        for n in np.argsort(np.linalg.norm(desc[other] - desc[a], axis=1), kind="stable"):
+            k = tried[n]
+            if aligner is None:
+                aligner = make_aligner(method, cfg, search, scales=scales, executor=executor)
+                aligner.prepare(pre)
+            r = results[k]
+            res = aligner.align(pre[r.i], pre[r.j], i=r.i, j=r.j)
+            if not res.accepted:
+                continue
+            results[k] = res
+            confirmed = confirmed_scans(pre, results, max_voxels, scales=scales)
+            if a in confirmed:
                 break
     return results

@@ -25,7 +25,7 @@ from mvreg.pairwise import (
     preprocess_all,
     with_noise,
 )
-from mvreg.pairwise.search import connect_unconnected
+from mvreg.pairwise.search import confirm_weak_scans, connect_unconnected
 from mvreg.pairwise.stored_poses import retry_from_stored_poses
 from mvreg.pipeline.run import Run
 from mvreg.scales import Scales
@@ -91,6 +91,10 @@ class UnorderedMode:
             executor=run.executor, scales=scales,
         )  # fmt: skip
         results = retry_from_stored_poses(pre, scans, results, cfg.align, scales)
+        results = confirm_weak_scans(
+            pre, results, cfg.align, cfg.search, executor=run.local, scales=scales,
+            max_voxels=cfg.robust.cycle_check_voxels or 2.0,
+        )  # fmt: skip
         results = connect_unconnected(
             pre, results, cfg.align, cfg.search, executor=run.local, scales=scales
         )  # the rotation search stays in-process (one scan at a time)

@@ -49,31 +49,30 @@ def laplacian_pcg(
     Returns (mean-free x, iterations, converged: every column's residual <= rtol ||b||,
     or stalled within 100 rtol at the rounding floor).
     """
-    dinv = 1.0 / np.maximum(S.diagonal(), 1e-300)[:, None]
-    ones = np.ones(S.shape[0])
-
-    def coldot(u, v):  # column-wise inner products, as one BLAS product (a sum over
-        return ones @ (u * v)  # axis 0 of an (M, r) array is several times slower)
-
-    b = b - b.mean(axis=0, keepdims=True)
-    x = np.zeros_like(b)
-    r = b.copy()
+    # Work on the transposes (r, M): elementwise operations on (M, r) arrays with few
+    # columns run several times slower (inner loops of length r).
+    dinv = 1.0 / np.maximum(S.diagonal(), 1e-300)
+    bt = np.ascontiguousarray((b - b.mean(axis=0, keepdims=True)).T)
+    x = np.zeros_like(bt)
+    r = bt.copy()
     z = dinv * r
     p = z.copy()
-    rz = coldot(r, z)
-    nb2 = coldot(b, b)
+    rz = np.einsum("ij,ij->i", r, z)
+    nb2 = np.einsum("ij,ij->i", bt, bt)
     target = rtol**2 * nb2
     best = np.full_like(nb2, np.inf)
     since_best = its = 0
     rr = nb2
+    q = np.empty_like(bt)
     while its < maxiter:
         its += 1
-        q = S @ p
-        pq = coldot(p, q)
-        alpha = np.divide(rz, pq, out=np.zeros_like(rz), where=pq > 0)
+        for i in range(len(q)):  # one sparse product per column: faster than a block
+            q[i] = S @ p[i]
+        pq = np.einsum("ij,ij->i", p, q)
+        alpha = np.divide(rz, pq, out=np.zeros_like(rz), where=pq > 0)[:, None]
         x += alpha * p
         r -= alpha * q
-        rr = coldot(r, r)
+        rr = np.einsum("ij,ij->i", r, r)
         if np.all(rr <= target):
             break
         improved = rr < 0.5 * best
@@ -82,9 +81,10 @@ def laplacian_pcg(
         if since_best >= 20:
             break  # rounding floor
         z = dinv * r
-        rz_new = coldot(r, z)
-        beta = np.divide(rz_new, rz, out=np.zeros_like(rz), where=rz > 0)
+        rz_new = np.einsum("ij,ij->i", r, z)
+        beta = np.divide(rz_new, rz, out=np.zeros_like(rz), where=rz > 0)[:, None]
         p = z + beta * p
         rz = rz_new
     converged = bool(np.all(rr <= 1e4 * target))
-    return x - x.mean(axis=0, keepdims=True), its, converged
+    x = x.T - x.mean(axis=1)
+    return np.ascontiguousarray(x), its, converged

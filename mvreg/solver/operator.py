@@ -113,8 +113,11 @@ class LaplacianSolver:
         self.cg_iterations += its
         if ok:
             return x
-        self.method = "pardiso"  # the Krylov path failed here: factorize from now on
-        self._lu = pardiso.PardisoFactor(self.red, refine=True)
+        # The Krylov path failed here: factorize from now on.
+        if pardiso.available():
+            self.method, self._lu = "pardiso", pardiso.PardisoFactor(self.red, refine=True)
+        else:
+            self.method, self._lu = "direct", spla.splu(self.red, permc_spec="MMD_AT_PLUS_A")
         x = np.zeros_like(b)
         x[1:] = self._lu.solve(np.ascontiguousarray(b[1:]))
         return x
@@ -152,7 +155,7 @@ class RegOperator:
         # PARDISO's forecast of the bordered system's factorization (shift_invert.py).
         self.factor_forecast: dict | None = None
         # Which paths the solver took where it chooses from the data (krylov.py): e.g.
-        # "polish": "block-jacobi-cg" or "factorization"; copied into SolveResult.stats.
+        # "polish": "block-jacobi CG" or polish.STALLED; copied into SolveResult.stats.
         self.paths: dict = {}
         self.timings = {"assemble": t1 - t0, "laplacian_setup": time.perf_counter() - t1}
 

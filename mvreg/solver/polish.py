@@ -24,12 +24,19 @@ from mvreg.solver.shift_invert import (
     NewtonSystem,
     ShiftedInverse,
     direct_feasible,
+    krylov_first,
     newton_direct_feasible,
     skew_basis,
 )
 
 # Newton stops when ||grad||_F / (lambda_max sqrt(n)) is below this (~ the rounding floor).
 KKT_TOL = 1e-14
+# Where the factorization is forecast nearly dense (shift_invert.krylov_first) each Newton
+# system is first solved by block-Jacobi CG with at most this many steps; a system that
+# needs more falls back to the factorization (random overlap graph, M = 1,000: 30-45 CG
+# steps per Newton step, against one factorization of ~1.5 s).
+KRYLOV_CG_CAP = 150
+STALLED = "factorization (block-jacobi CG stalled)"
 
 
 @dataclass
@@ -75,11 +82,14 @@ def tangent_block_jacobi(op, xb: np.ndarray, mi: np.ndarray):
     w = np.maximum(w, 1e-8 * max(float(w.max()), 1e-300))
     h_inv = np.einsum("mab,mb,mcb->mac", v, 1.0 / w, v)
 
+    e_flat = e.reshape(e.shape[0], d * d)
+    xt = np.ascontiguousarray(xb.transpose(0, 2, 1))
+
     def prec(g):
-        gb = g.reshape(-1, d, d)
-        coef = np.einsum("apq,mrp,mrq->ma", e, xb, gb)  # <X_i E_a, g_i>
+        # As batched matrix products (three-operand einsums are ~10x slower here).
+        coef = (xt @ g.reshape(-1, d, d)).reshape(-1, d * d) @ e_flat.T  # <X_i E_a, g_i>
         om = np.einsum("mab,mb->ma", h_inv, coef)
-        return -np.einsum("mpq,ma,aqr->mpr", xb, om, e).reshape(g.shape)
+        return -(xb @ (om @ e_flat).reshape(-1, d, d)).reshape(g.shape)
 
     return prec
 
@@ -90,6 +100,48 @@ def _precondition(prec, xb: np.ndarray, r: np.ndarray) -> np.ndarray:
         return r
     d = xb.shape[-1]
     return _horizontal(xb, _tangent_project(xb, (-prec(r)).reshape(-1, d, d)).reshape(-1, d))
+
+
+def _newton_cg(hess, prec, xb, g, rel_grad, lam_max, max_cg):
+    """Truncated CG on H xi = -g (horizontal tangent space), preconditioned by ``prec``;
+    stops on negative curvature, at the forcing tolerance min(0.01, ``rel_grad``) relative,
+    on stagnation (the rounding floor of the products with C) or after ``max_cg`` steps.
+    Returns (xi, steps, capped: ran all ``max_cg`` steps without stopping otherwise)."""
+    xi = np.zeros_like(g)
+    r = -_horizontal(xb, g)
+    z = _precondition(prec, xb, r)
+    p = z.copy()
+    rz = float(np.sum(r * z))
+    stop = float(np.sum(r * r)) * min(0.01, rel_grad) ** 2
+    steps = 0
+    best_rr, since_best = np.inf, 0
+    for _ in range(max_cg):
+        hp = hess(p)
+        steps += 1
+        php = float(np.sum(p * hp))
+        if php <= 1e-14 * lam_max * float(np.sum(p * p)):
+            if not np.any(xi):
+                xi = -g
+            break
+        alpha = rz / php
+        xi += alpha * p
+        r -= alpha * hp
+        rr = float(np.sum(r * r))
+        if rr <= stop:
+            break
+        # Stagnation: rounding errors in the products with C set a floor on the residual.
+        best_rr, since_best = (rr, 0) if rr < 0.5 * best_rr else (best_rr, since_best + 1)
+        if since_best >= 30:
+            break
+        z = _precondition(prec, xb, r)
+        rz_new = float(np.sum(r * z))
+        if rz_new <= 0.0 or rz <= 0.0:
+            break  # exact solve, or an indefinite preconditioner: stop here
+        p = z + (rz_new / rz) * p
+        rz = rz_new
+    else:
+        return xi, steps, True
+    return xi, steps, False
 
 
 def polish(
@@ -106,13 +158,22 @@ def polish(
 
     Preconditioner: the exact Newton system at the start (one sparse factorization) when
     affordable; on larger problems (C + Lambda + sigma I)^{-1} at the start, projected onto
-    the tangent space (a cheaper factorization, and the certificate reuses it).
+    the tangent space (a cheaper factorization, and the certificate reuses it). Where that
+    factor would be nearly dense (shift_invert.krylov_first: an expander) block-Jacobi CG
+    first, capped at KRYLOV_CG_CAP steps per Newton system; the factorization only when
+    a system needs more (recorded in ``op.paths["polish"]``).
     """
     d, n = op.d, op.n
     X = x_from_rotations(R)
     CX = op.matvec(X)
     use_direct = precondition and op.M > 1 and direct_feasible(op)
     exact = use_direct and newton_direct_feasible(op)
+    # Factorization-free first where the factor would be nearly dense (an expander), unless
+    # that already stalled on this operator.
+    trial = use_direct and krylov_first(op) and op.paths.get("polish") != STALLED
+    if trial:
+        op.paths["polish"] = "block-jacobi CG"
+    cap = KRYLOV_CG_CAP if trial else max_cg
     inverse = None
 
     def make_prec(X, CX):
@@ -122,7 +183,7 @@ def polish(
         inverse = ShiftedInverse(op, multipliers(X, CX, d)[0], SHIFT * lam_max)
         return lambda g: -inverse(g)
 
-    prec = make_prec(X, CX) if use_direct else None
+    prec = make_prec(X, CX) if use_direct and not trial else None
     refresh_after = 20 if exact else 60
     cg_last = 0
     f = float(np.sum(X * CX))
@@ -141,52 +202,29 @@ def polish(
         if gnorm <= kkt_tol * scale or it == max_newton or slow >= 3:
             break
         prev = gnorm
-        if use_direct and cg_last > refresh_after:
+        if use_direct and not trial and cg_last > refresh_after:
             # The factorization from an earlier point no longer preconditions well: refresh.
             prec = make_prec(X, CX)
         mi = sym(np.einsum("mba,mbc->mac", xb, CX.reshape(-1, d, d)))
-        if precondition and op.M > 1 and not use_direct:
-            prec = tangent_block_jacobi(op, xb, mi)  # no factorization affordable
+        if precondition and op.M > 1 and (trial or not use_direct):
+            prec = tangent_block_jacobi(op, xb, mi)  # no factorization (yet)
 
         def hess(v, xb=xb, mi=mi):
             cv = op.matvec(v).reshape(-1, d, d)
             hv = _tangent_project(xb, cv - v.reshape(-1, d, d) @ mi).reshape(-1, d)
             return _horizontal(xb, hv)
 
-        # Truncated CG on H xi = -g (tangent space), stops on negative curvature.
-        xi = np.zeros_like(g)
-        r = -_horizontal(xb, g)
-        z = _precondition(prec, xb, r)
-        p = z.copy()
-        rz = float(np.sum(r * z))
-        stop = float(np.sum(r * r)) * min(0.01, gnorm / scale) ** 2
-        cg_last = 0
-        best_rr, since_best = np.inf, 0
-        for _ in range(max_cg):
-            hp = hess(p)
-            cg_total += 1
-            cg_last += 1
-            php = float(np.sum(p * hp))
-            if php <= 1e-14 * lam_max * float(np.sum(p * p)):
-                if not np.any(xi):
-                    xi = -g
-                break
-            alpha = rz / php
-            xi += alpha * p
-            r -= alpha * hp
-            rr = float(np.sum(r * r))
-            if rr <= stop:
-                break
-            # Stagnation: rounding errors in the products with C set a floor on the residual.
-            best_rr, since_best = (rr, 0) if rr < 0.5 * best_rr else (best_rr, since_best + 1)
-            if since_best >= 30:
-                break
-            z = _precondition(prec, xb, r)
-            rz_new = float(np.sum(r * z))
-            if rz_new <= 0.0 or rz <= 0.0:
-                break  # exact solve, or an indefinite preconditioner: stop here
-            p = z + (rz_new / rz) * p
-            rz = rz_new
+        xi, steps, capped = _newton_cg(hess, prec, xb, g, gnorm / scale, lam_max, cap)
+        if trial and capped:
+            # Block-Jacobi CG did not converge within its budget: factorize after all (at
+            # this point, and for the rest of this operator's polishes).
+            trial, cap = False, max_cg
+            op.paths["polish"] = STALLED
+            prec = make_prec(X, CX)
+            cg_total += steps
+            xi, steps, _ = _newton_cg(hess, prec, xb, g, gnorm / scale, lam_max, cap)
+        cg_total += steps
+        cg_last = steps
         # Backtracking line search with the polar retraction.
         slope = float(np.sum(g * xi))
         step = 1.0

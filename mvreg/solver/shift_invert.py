@@ -20,6 +20,7 @@ import scipy.sparse as sp
 import scipy.sparse.linalg as spla
 
 from mvreg.solver import pardiso
+from mvreg.solver.krylov import dense_factor, fill_density
 
 # Above this many unknowns the sparse LU is not attempted (fill-in grows superlinearly;
 # measurements behind these limits: docs/design/solver.md).
@@ -178,10 +179,21 @@ def direct_feasible(op) -> bool:
         op.factor_forecast = {
             "factor_nnz": f.factor_nnz,
             "factor_flops": f.factor_flops,
+            "fill": fill_density(f.factor_nnz, K.shape[0]),
+            "dense": dense_factor(f.factor_nnz, K.shape[0], f.factor_flops),
             "direct": bool(f.factor_flops <= FACTOR_MAX_FLOPS),
         }
         op.timings["factor_forecast"] = time.perf_counter() - t0
     return op.factor_forecast["direct"]
+
+
+def krylov_first(op) -> bool:
+    """Whether to try the factorization-free path first where a factorization is affordable:
+    PARDISO forecasts a nearly dense factor of the bordered system (krylov.dense_factor,
+    an expander-like overlap graph). False without PARDISO's forecast."""
+    if not direct_feasible(op) or op.factor_forecast is None:
+        return False
+    return bool(op.factor_forecast.get("dense", False))
 
 
 def skew_basis(d: int) -> np.ndarray:

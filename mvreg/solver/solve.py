@@ -194,6 +194,8 @@ def _result(problem, cfg: SolveConfig, setup: _Setup, run: SolverRun, R, t, z, c
             **run.stats,
             "C_products": op.num_matvecs,
             "laplacian": op.lap.method,
+            "laplacian_cg_iterations": op.lap.cg_iterations,
+            "paths": dict(op.paths),
             "factor_forecast": op.factor_forecast,
         },
     )

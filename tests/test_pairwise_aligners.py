@@ -228,3 +228,41 @@ def test_a_scan_no_cycle_confirms_has_its_rejected_pairs_searched(views):
     assert rot < 0.3 and trans < 0.003
     assert fixed[1] is broken[1]  # (0, 2) was never rejected
     assert fixed[2].accepted and fixed[2].stats["search"]
+
+
+def test_the_second_pass_searches_only_scans_the_first_left_unverified(views):
+    """``UnorderedMode.recover``: with ``search.weak_scans`` the rejected pairs of a scan
+    the first pass left without a pose are searched again, and the pair found is right;
+    nothing is searched (None) when every scan was verified, when the scan's pose was found
+    undetermined (a symmetry more pairs cannot settle), or with the setting off."""
+    from dataclasses import replace
+    from types import SimpleNamespace
+
+    from mvreg.config import load_config
+    from mvreg.globalstage.verify import ScanVerification
+    from mvreg.pipeline.stages import UnorderedMode
+
+    _, scales, pre, truth = views
+    results = align_pairs(pre, [(0, 1), (0, 2), (1, 2)], AlignConfig(), 0, scales=scales)
+    flip = make_transform(Rotation.from_euler("x", 180, degrees=True).as_matrix(), np.zeros(3))
+    broken = [
+        replace(r, T_i_j=r.T_i_j @ flip, accepted=False, reason="test") if 1 in (r.i, r.j) else r
+        for r in results
+    ]
+    cfg = load_config(
+        **{"search.weak_scans": True, "search.screen_source_points": 100,
+           "search.screen_iterations": 2}
+    )  # fmt: skip
+    run = SimpleNamespace(cfg=cfg, local=2, timed=lambda _name: None)
+    ok = ScanVerification("verified", evidence="cycle")
+    mode = UnorderedMode()
+    new = mode.recover(run, pre, scales, broken, {0: ok, 2: ok})
+    assert new is not None and new[0].accepted and new[0].stats["search"]
+    rot, trans = _errors(new[0].T_i_j, truth)
+    assert rot < 0.3 and trans < 0.003
+    assert new[1] is broken[1]
+    assert mode.recover(run, pre, scales, broken, {0: ok, 1: ok, 2: ok}) is None
+    open_ = ScanVerification("undetermined")
+    assert mode.recover(run, pre, scales, broken, {0: ok, 1: open_, 2: ok}) is None
+    off = SimpleNamespace(cfg=load_config(), local=2, timed=lambda _name: None)
+    assert mode.recover(off, pre, scales, broken, {0: ok, 2: ok}) is None

@@ -98,9 +98,9 @@ class SearchConfig(BaseModel):
     enabled: bool = True
     weak_scans: bool = Field(
         False,
-        description="search the rejected pairs of scans no cycle of pairs confirms "
-        "(off by default: on unseen parts it also confirms wrong pairs; docs/benchmarks/"
-        "generalization.md)",
+        description="after a first pass that leaves scans unverified, search their "
+        "rejected pairs again and run a second pass, kept when it verifies more scans "
+        "(off by default: docs/design/verification.md)",
     )
     partners: int = Field(3, ge=1, le=1000, description="scans of the connected set tried per scan")
     offset_deg: float = Field(20.0, ge=0, le=90, description="turn of the group's copies")

@@ -6,7 +6,9 @@ searched with the aligner ``method`` (nearest scans by global descriptor first) 
 cycle confirms it or they run out. Sparse scans of machined parts are where this pays:
 feature RANSAC proposes flips of their near-symmetric faces, which the free-space tests
 rightly reject, and the right pose is never proposed (``docs/design/pairwise.md``).
-Runs only for such scans, so data that feature matching handles never pays for it.
+The pipeline calls it after a first verified pass, for the scans that pass did not verify
+(:meth:`mvreg.pipeline.stages.UnorderedMode.recover`), so data that feature matching
+handles never pays for it.
 
 :func:`connect_unconnected`:
 
@@ -119,12 +121,13 @@ def confirm_weak_scans(
     max_voxels: float = 2.0,
     scales: Scales | None = None,
     method: str = "rotation-search",
+    only: Sequence[int] | None = None,
 ) -> list[PairResult]:
     """``results`` with rejected pairs of unconfirmed scans searched again (module
     docstring); a searched pair replaces the rejected result when it is accepted.
 
-    Scans are visited in index order; ``max_voxels`` is the cycle check's limit.
-    Deterministic: the aligner is, and the order is fixed."""
+    Scans are visited in index order (only those of ``only`` when given); ``max_voxels``
+    is the cycle check's limit. Deterministic: the aligner is, and the order is fixed."""
     cfg, search = cfg or AlignConfig(), search or SearchConfig()
     results = list(results)
     if not search.enabled or not search.weak_scans or len(pre) < 3:
@@ -132,7 +135,7 @@ def confirm_weak_scans(
     confirmed = confirmed_scans(pre, results, max_voxels, scales=scales)
     desc = np.stack([global_descriptor(p) for p in pre])
     aligner: PairwiseAligner | None = None
-    for a in range(len(pre)):
+    for a in range(len(pre)) if only is None else sorted(only):
         if a in confirmed:
             continue
         tried = [k for k, r in enumerate(results) if a in (r.i, r.j) and not r.accepted]

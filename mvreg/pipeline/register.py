@@ -77,9 +77,7 @@ def run_pipeline(run: Run, mode: Mode, source, names=None, truth=None, result_ty
         cfg, scales.voxel, run.local, TrackSolver(cfg.solve, cfg.seed, run.on_iteration), scans
     )
     t_verify = time.perf_counter()
-    out, verification, dropped = GlobalStage(graph.plan).run_verified(
-        ctx, pre, graph.results, prog, run.timed
-    )
+    out, verification, dropped = verified_passes(run, mode, ctx, pre, scales, graph)
     run.timings["verify_with_resolves"] = time.perf_counter() - t_verify
     prog.done()
 
@@ -116,6 +114,25 @@ def run_pipeline(run: Run, mode: Mode, source, names=None, truth=None, result_ty
         if cfg.output.record_pair_correspondences and rec.enabled:
             record_pairs(rec, sol, names_all)
     return reg
+
+
+def verified_passes(run: Run, mode: Mode, ctx, pre, scales, graph):
+    """The global stage with verification (:meth:`GlobalStage.run_verified`); when scans
+    are left without a verified pose and the mode has pairs to search again for them
+    (``mode.recover``), a second pass on those results, kept when it verifies more scans.
+    Returns (outcome, verification, dropped) of the pass kept."""
+    stage = GlobalStage(graph.plan)
+    first = stage.run_verified(ctx, pre, graph.results, run.progress, run.timed)
+    recover = getattr(mode, "recover", None)
+    retry = None if recover is None else recover(run, pre, scales, graph.results, first[1])
+    if retry is None:
+        return first
+    second = stage.run_verified(ctx, pre, retry, run.progress, run.timed)
+    return second if _num_verified(*second[1:]) > _num_verified(*first[1:]) else first
+
+
+def _num_verified(verification: dict, dropped) -> int:
+    return sum(v.status == "verified" and s not in dropped for s, v in verification.items())
 
 
 def record_pairs(rec, sol, names: list[str]) -> None:

@@ -91,10 +91,6 @@ class UnorderedMode:
             executor=run.executor, scales=scales,
         )  # fmt: skip
         results = retry_from_stored_poses(pre, scans, results, cfg.align, scales)
-        results = confirm_weak_scans(
-            pre, results, cfg.align, cfg.search, executor=run.local, scales=scales,
-            max_voxels=cfg.robust.cycle_check_voxels or 2.0,
-        )  # fmt: skip
         results = connect_unconnected(
             pre, results, cfg.align, cfg.search, executor=run.local, scales=scales
         )  # the rotation search stays in-process (one scan at a time)
@@ -102,6 +98,24 @@ class UnorderedMode:
             results = self.pair_hook(pre, results)
         run.timed("pairwise")
         return PairGraph(results, MultiviewPlan(), columns=free_space_columns)
+
+    def recover(self, run: Run, pre, scales: Scales, results, verification) -> list | None:
+        """Pair results for a second pass, or None: with ``search.weak_scans``, the
+        rejected pairs of the scans the first pass neither verified nor found undetermined
+        (a symmetry more pairs cannot settle), searched again by
+        :func:`mvreg.pairwise.search.confirm_weak_scans`; None when nothing changed. A run
+        whose scans were all verified never gets here."""
+        cfg = run.cfg
+        done = {s for s, v in verification.items() if v.status in ("verified", "undetermined")}
+        todo = [s for s in range(len(pre)) if s not in done]
+        if not cfg.search.weak_scans or not todo:
+            return None
+        new = confirm_weak_scans(
+            pre, results, cfg.align, cfg.search, executor=run.local, scales=scales,
+            max_voxels=cfg.robust.cycle_check_voxels or 2.0, only=todo,
+        )  # fmt: skip
+        run.timed("weak_scan_search")
+        return None if all(a is b for a, b in zip(new, results, strict=True)) else new
 
     def evaluate(self, run: Run, reg, pre, results, truth) -> None:
         from mvreg.pipeline.evaluate import evaluate_overlap_and_truth

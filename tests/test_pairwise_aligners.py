@@ -250,19 +250,20 @@ def test_the_second_pass_searches_only_scans_the_first_left_unverified(views):
         for r in results
     ]
     cfg = load_config(
-        **{"search.weak_scans": True, "search.screen_source_points": 100,
-           "search.screen_iterations": 2}
+        **{"search.weak_scans": True, "search.joint": False,
+           "search.screen_source_points": 100, "search.screen_iterations": 2}
     )  # fmt: skip
     run = SimpleNamespace(cfg=cfg, local=2, timed=lambda _name: None)
     ok = ScanVerification("verified", evidence="cycle")
     mode = UnorderedMode()
-    new = mode.recover(run, pre, scales, broken, {0: ok, 2: ok})
+    out = SimpleNamespace(solution=None, T_world_scan={})
+    new = mode.recover(run, pre, scales, broken, out, {0: ok, 2: ok}, [])
     assert new is not None and new[0].accepted and new[0].stats["search"]
     rot, trans = _errors(new[0].T_i_j, truth)
     assert rot < 0.3 and trans < 0.003
     assert new[1] is broken[1]
-    assert mode.recover(run, pre, scales, broken, {0: ok, 1: ok, 2: ok}) is None
+    assert mode.recover(run, pre, scales, broken, out, {0: ok, 1: ok, 2: ok}, []) is None
     open_ = ScanVerification("undetermined")
-    assert mode.recover(run, pre, scales, broken, {0: ok, 1: open_, 2: ok}) is None
-    off = SimpleNamespace(cfg=load_config(), local=2, timed=lambda _name: None)
-    assert mode.recover(off, pre, scales, broken, {0: ok, 2: ok}) is None
+    assert mode.recover(run, pre, scales, broken, out, {0: ok, 1: open_, 2: ok}, []) is None
+    off = SimpleNamespace(cfg=load_config(**{"search.joint": False}), local=2, timed=lambda _: 0)
+    assert mode.recover(off, pre, scales, broken, out, {0: ok, 2: ok}, []) is None

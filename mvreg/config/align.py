@@ -102,6 +102,16 @@ class SearchConfig(BaseModel):
         "rejected pairs again and run a second pass, kept when it verifies more scans "
         "(off by default: docs/design/verification.md)",
     )
+    joint: bool = Field(
+        True,
+        description="after a first pass that leaves scans unverified, gather several "
+        "hypotheses for their pairs (the rotation search's among them), choose one per "
+        "pair jointly by agreement around cycles, and run a second pass, kept when it "
+        "verifies more scans (mvreg.pairwise.joint)",
+    )
+    joint_partners: int = Field(
+        4, ge=1, le=1000, description="pairs searched per unverified scan (nearest by descriptor)"
+    )
     partners: int = Field(3, ge=1, le=1000, description="scans of the connected set tried per scan")
     offset_deg: float = Field(20.0, ge=0, le=90, description="turn of the group's copies")
     screen_source_points: int = Field(500, ge=50)

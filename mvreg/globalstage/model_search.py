@@ -185,15 +185,18 @@ def view_conflict(group, pre, T_world_scan, others, M: np.ndarray, acfg: AlignCo
     return None
 
 
-def pair_poses(s, results, T_placed) -> list[np.ndarray]:
+def pair_poses(s, results, T_placed, accepted: bool = False) -> list[np.ndarray]:
     """World poses of scan ``s`` from the pose hypotheses of its pairs with scans of
     ``T_placed`` (``PairResult``, accepted or not: ``T_i_j`` and
-    ``stats["pose_hypotheses"]``), each carried into the world by the partner's pose."""
+    ``stats["pose_hypotheses"]``; with ``accepted``, also every hypothesis the pair's
+    aligner accepted, ``stats["accepted_hypotheses"]``), each carried into the world by
+    the partner's pose."""
     out = []
     for r in results:
         if s not in (r.i, r.j) or (r.j if r.i == s else r.i) not in T_placed:
             continue
-        for T_i_j in [r.T_i_j, *r.stats.get("pose_hypotheses", [])]:
+        more = [T for T, _ in r.stats.get("accepted_hypotheses", [])] if accepted else []
+        for T_i_j in [r.T_i_j, *r.stats.get("pose_hypotheses", []), *more]:
             if r.i == s:  # p_s = T_i_j p_j
                 out.append(T_placed[r.j] @ invert_transform(T_i_j))
             else:
@@ -257,9 +260,8 @@ def _search(group, pre, T_world_scan, others, model, voxel, acfg, far_voxels, ma
         target, source, acfg, voxel, seed=min(group), far=far, rounds=rounds
     )
     placed = {k: T_world_scan[k] for k in others}
-    from_pairs = [
-        P @ invert_transform(T_world_scan[s]) for s in group for P in pair_poses(s, results, placed)
-    ]
+    poses = [(s, P) for s in group for P in pair_poses(s, results, placed, accepted=True)]
+    from_pairs = [P @ invert_transform(T_world_scan[s]) for s, P in poses]
     if not candidates and not from_pairs and not turns:
         return None
     src = np.concatenate([transform_points(T_world_scan[s], pre[s].fine_points) for s in group])

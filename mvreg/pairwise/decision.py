@@ -137,6 +137,8 @@ def choose(tried: Sequence[Verified], cfg: AlignConfig, stats: dict) -> Verified
     passed = [t for t in tried if not t.reason]
     stats["hypotheses_tried"] = len(tried)
     stats["hypotheses_accepted"] = len(passed)
+    ranked = sorted(passed, key=lambda t: -support(t.scores, cfg))
+    stats["accepted_hypotheses"] = [(t.T, t.scores) for t in ranked]
     return max(passed, key=lambda t: support(t.scores, cfg), default=tried[0])
 
 

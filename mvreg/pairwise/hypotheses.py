@@ -103,11 +103,20 @@ def same_pose(A: np.ndarray, B: np.ndarray, tol: float, centre: np.ndarray, radi
 def distinct_poses(poses, tol: float, centre: np.ndarray, radius: float) -> list[np.ndarray]:
     """``poses`` in order, leaving out each one within ``tol`` (:func:`same_pose`) of one
     kept before it."""
-    kept: list[np.ndarray] = []
-    for T in poses:
-        if not any(same_pose(T, K, tol, centre, radius) for K in kept):
-            kept.append(T)
-    return kept
+    if len(poses) < 2:
+        return list(poses)
+    P = np.asarray(poses, dtype=np.float64)
+    R = P[:, :3, :3]
+    cos = (np.einsum("kab,lab->kl", R, R) - 1.0) / 2.0
+    angle = np.arccos(np.clip(cos, -1.0, 1.0))
+    at = R @ centre + P[:, :3, 3]  # where each pose puts the centre
+    shift = np.linalg.norm(at[:, None] - at[None], axis=2)
+    close = angle * radius + shift < tol
+    kept: list[int] = []
+    for k in range(len(P)):
+        if not kept or not close[k, kept].any():
+            kept.append(k)
+    return [poses[k] for k in kept]
 
 
 def ransac_numpy(

@@ -168,3 +168,76 @@ def nearest_with_normals(tree, pts_dst, nrm_dst, pts_src, nrm_src, T_dst_src, ma
     nearest[found] = k
     resid[found] = np.abs(np.einsum("ij,ij->i", nrm_dst[k], q[found] - pts_dst[k]))
     return nearest, resid
+
+
+def icp_point_to_plane_batch(
+    source: np.ndarray,
+    source_normals: np.ndarray,
+    target: np.ndarray,
+    target_normals: np.ndarray,
+    target_tree: cKDTree,
+    T_target_source: np.ndarray,
+    max_dist: float,
+    iterations: int,
+    min_normal_cos: float = 0.5,
+    workers: int = 1,
+    tolerance: float = 5e-3,
+) -> np.ndarray:
+    """:func:`icp_point_to_plane` from many start poses at once: (K, 4, 4) in, (K, 4, 4)
+    out. Each start takes the same Gauss-Newton steps as there, at most ``iterations``,
+    and stops when a step moves no point by more than ``tolerance * max_dist``; a start
+    with fewer than six correspondences keeps its pose. One KD-tree query per iteration for
+    the starts still moving (on ``workers`` threads; deterministic), so hundreds of starts
+    cost about as much as a few one at a time."""
+    T = np.array(T_target_source, dtype=np.float64).reshape(-1, 4, 4).copy()
+    n = len(source)
+    extent = float(np.max(np.linalg.norm(source - source.mean(0), axis=1), initial=0.0))
+    active = np.arange(len(T))
+    for _ in range(iterations):
+        if n == 0 or len(active) == 0:
+            break
+        Ta = T[active]
+        k = len(Ta)
+        q = np.matmul(source, Ta[:, :3, :3].transpose(0, 2, 1)) + Ta[:, None, :3, 3]
+        d, nn = target_tree.query(q.reshape(-1, 3), distance_upper_bound=max_dist, workers=workers)
+        ok = np.isfinite(d).reshape(k, n)
+        nn = np.where(ok.ravel(), nn, 0).reshape(k, n)
+        tn = target_normals[nn]
+        sn = np.matmul(source_normals, Ta[:, :3, :3].transpose(0, 2, 1))
+        w = (ok & (np.einsum("kni,kni->kn", tn, sn) >= min_normal_cos)).astype(np.float64)
+        count = w.sum(1)
+        r = np.einsum("kni,kni->kn", q - target[nn], tn)
+        c = np.einsum("kn,kni->ki", w, q) / np.maximum(count, 1.0)[:, None]
+        arm = q - c[:, None]
+        scale = np.sqrt(np.einsum("kn,kni,kni->k", w, arm, arm) / np.maximum(count, 1.0)) + 1e-300
+        arm /= scale[:, None, None]
+        a = np.concatenate([np.cross(arm, tn), tn], axis=2)
+        aw = a * w[..., None]
+        ata = np.matmul(aw.transpose(0, 2, 1), a)
+        atb = np.einsum("kni,kn->ki", aw, r)
+        damp = 1e-12 * np.trace(ata, axis1=1, axis2=2) + 1e-300
+        x = np.linalg.solve(ata + damp[:, None, None] * np.eye(6), -atb[..., None])[..., 0]
+        x[count < 6] = 0.0
+        wv = x[:, :3] / scale[:, None]  # p -> R (p - c) + c + u
+        R = _rotations(wv)
+        step = np.zeros((k, 4, 4))
+        step[:, :3, :3] = R
+        step[:, :3, 3] = c - np.einsum("kij,kj->ki", R, c) + x[:, 3:]
+        step[:, 3, 3] = 1.0
+        T[active] = np.matmul(step, Ta)
+        moved = np.linalg.norm(wv, axis=1) * extent + np.linalg.norm(x[:, 3:], axis=1)
+        active = active[(moved >= tolerance * max_dist) & (count >= 6)]
+    return T
+
+
+def _rotations(w: np.ndarray) -> np.ndarray:
+    """(K, 3, 3) rotations of the rotation vectors ``w`` (K, 3), by Rodrigues."""
+    theta = np.linalg.norm(w, axis=1)
+    kx = np.zeros((len(w), 3, 3))
+    kx[:, 0, 1], kx[:, 0, 2], kx[:, 1, 2] = -w[:, 2], w[:, 1], -w[:, 0]
+    kx -= np.transpose(kx, (0, 2, 1))
+    safe = np.where(theta < 1e-12, 1.0, theta)
+    unit = kx / safe[:, None, None]
+    s = np.where(theta < 1e-12, 1.0, np.sin(theta))[:, None, None]
+    c = np.where(theta < 1e-12, 0.0, 1.0 - np.cos(theta))[:, None, None]
+    return np.eye(3) + s * unit + c * (unit @ unit)

@@ -124,7 +124,7 @@ def verified_passes(run: Run, mode: Mode, ctx, pre, scales, graph):
     stage = GlobalStage(graph.plan)
     first = stage.run_verified(ctx, pre, graph.results, run.progress, run.timed)
     recover = getattr(mode, "recover", None)
-    retry = None if recover is None else recover(run, pre, scales, graph.results, first[1])
+    retry = None if recover is None else recover(run, pre, scales, graph.results, *first)
     if retry is None:
         return first
     second = stage.run_verified(ctx, pre, retry, run.progress, run.timed)

@@ -25,6 +25,7 @@ from mvreg.pairwise import (
     preprocess_all,
     with_noise,
 )
+from mvreg.pairwise.joint import choose_jointly
 from mvreg.pairwise.search import confirm_weak_scans, connect_unconnected
 from mvreg.pairwise.stored_poses import retry_from_stored_poses
 from mvreg.pipeline.run import Run
@@ -99,22 +100,38 @@ class UnorderedMode:
         run.timed("pairwise")
         return PairGraph(results, MultiviewPlan(), columns=free_space_columns)
 
-    def recover(self, run: Run, pre, scales: Scales, results, verification) -> list | None:
-        """Pair results for a second pass, or None: with ``search.weak_scans``, the
-        rejected pairs of the scans the first pass neither verified nor found undetermined
-        (a symmetry more pairs cannot settle), searched again by
-        :func:`mvreg.pairwise.search.confirm_weak_scans`; None when nothing changed. A run
-        whose scans were all verified never gets here."""
+    def recover(self, run: Run, pre, scales: Scales, results, out, verification, dropped):
+        """Pair results for a second pass, or None when nothing changed. The scans the first
+        pass (``out``, ``verification``, ``dropped``) neither verified nor found
+        undetermined (a symmetry more pairs cannot settle) get their pairs searched again:
+        with ``search.joint``, several hypotheses per pair chosen jointly, the verified
+        scans as anchors (:mod:`mvreg.pairwise.joint`); else with ``search.weak_scans``,
+        :func:`mvreg.pairwise.search.confirm_weak_scans`. A run whose scans were all
+        verified never gets here."""
         cfg = run.cfg
         done = {s for s, v in verification.items() if v.status in ("verified", "undetermined")}
         todo = [s for s in range(len(pre)) if s not in done]
-        if not cfg.search.weak_scans or not todo:
+        if not todo or not cfg.search.enabled:
             return None
-        new = confirm_weak_scans(
-            pre, results, cfg.align, cfg.search, executor=run.local, scales=scales,
-            max_voxels=cfg.robust.cycle_check_voxels or 2.0, only=todo,
-        )  # fmt: skip
-        run.timed("weak_scan_search")
+        if cfg.search.joint:
+            poses = {} if out.solution is None else out.T_world_scan
+            anchors = {
+                s: T for s, T in poses.items()
+                if s not in dropped and s in verification and verification[s].status == "verified"
+            }  # fmt: skip
+            new = choose_jointly(
+                pre, results, todo, anchors, cfg.align, cfg.search, run.local, scales,
+                cfg.robust.cycle_check_voxels or 2.0,
+            )  # fmt: skip
+            run.timed("joint_choice")
+        elif cfg.search.weak_scans:
+            new = confirm_weak_scans(
+                pre, results, cfg.align, cfg.search, executor=run.local, scales=scales,
+                max_voxels=cfg.robust.cycle_check_voxels or 2.0, only=todo,
+            )  # fmt: skip
+            run.timed("weak_scan_search")
+        else:
+            return None
         return None if all(a is b for a, b in zip(new, results, strict=True)) else new
 
     def evaluate(self, run: Run, reg, pre, results, truth) -> None:

@@ -30,7 +30,7 @@ from mvreg.executor import Executor
 from mvreg.pairwise.aligners.base import BaseAligner, register_aligner
 from mvreg.pairwise.decision import choose, screen, verify
 from mvreg.pairwise.hypotheses import distinct_poses, scan_extent
-from mvreg.pairwise.icp import feature_level_tree, icp_point_to_plane
+from mvreg.pairwise.icp import feature_level_tree, icp_point_to_plane_batch
 from mvreg.pairwise.preprocess import PreprocessedScan
 from mvreg.pairwise.result import PairResult, pair_result
 from mvreg.scales import Scales
@@ -60,21 +60,22 @@ class RotationSearchAligner(BaseAligner):
         src, src_n = pre_j.points[::stride], pre_j.normals[::stride]
         tree = feature_level_tree(pre_i)
 
-        def screened(R: np.ndarray):
-            T = np.eye(4)
-            T[:3, :3], T[:3, 3] = R, ci - R @ cj
-            for dist in search.screen_distances_voxels:
-                T = icp_point_to_plane(
-                    src, src_n, pre_i.points, pre_i.normals, tree, T, dist * v,
-                    search.screen_iterations, cfg.icp_min_normal_cos,
-                )  # fmt: skip
-            return T if screen(pre_i, pre_j, T, cfg, scales) else None
+        starts = rotation_starts(search.offset_deg)
+        T = np.tile(np.eye(4), (len(starts), 1, 1))
+        T[:, :3, :3] = starts
+        T[:, :3, 3] = ci - starts @ cj
+        for k, dist in enumerate(search.screen_distances_voxels):  # all starts at once
+            thin = 3 if k == 0 else 1  # the widest stage on a third of the points
+            T = icp_point_to_plane_batch(
+                src[::thin], src_n[::thin], pre_i.points, pre_i.normals, tree, T, dist * v,
+                search.screen_iterations, cfg.icp_min_normal_cos, self.executor.workers,
+            )  # fmt: skip
+            T = np.stack(distinct_poses(list(T), 0.25 * v, cj, radius))  # met in one basin
 
-        survivors = [
-            T
-            for T in self.executor.map(screened, rotation_starts(search.offset_deg))
-            if T is not None
-        ]
+        def screened(M: np.ndarray):
+            return M if screen(pre_i, pre_j, M, cfg, scales) else None
+
+        survivors = [M for M in self.executor.map(screened, list(T)) if M is not None]
         tried = [
             verify(pre_i, pre_j, T, cfg, scales) for T in distinct_poses(survivors, v, cj, radius)
         ]

@@ -1,0 +1,271 @@
+"""Stage 3c: several hypotheses per pair, one chosen per pair jointly by agreement.
+
+On sparse scans of machined parts the pose each pair keeps by itself is often a turn or a
+flip that passes every pairwise test (a part's faces look alike from many sides), while
+the right pose is among the pair's other accepted hypotheses (feature RANSAC's, and the
+rotation search's distinct survivors). One pair cannot tell them apart; several views
+together can: the right poses agree around cycles, the turns mostly do not.
+
+:func:`joint_choice` places scans one at a time from trusted poses (``anchors``: the scans
+a first pass verified; without any, the best triangle of hypotheses that close within the
+tolerance). A scan is placed only at a pose that at least ``min_agreeing`` of its pairs
+with placed scans agree on (each through one of its accepted hypotheses), so every scan it
+places is on a cycle; among scans that qualify, the one with the most agreeing pairs, then
+the most overlap, goes first. Without anchors, the growth starts from each of the
+``max_seeds`` closing triangles with the most overlap, and the start that places the most
+scans, then with the most pairs agreeing, is kept; the scans left are grown into further
+sets the same way (each in its own frame) while a triangle of them closes. Each pair
+within a set then keeps the hypothesis that agrees with the set's poses, and a pair
+accepted before that none of its hypotheses agrees with is rejected. The global stage and
+the verification run on the result as on any pairs: nothing placed here escapes the
+per-scan checks.
+
+:func:`search_hypotheses` gathers the hypotheses: the accepted ones each aligner already
+verified (``stats["accepted_hypotheses"]``, :func:`~mvreg.pairwise.decision.choose`) and,
+for the pairs given, those of the rotation search. Deterministic: fixed orders, ties by
+index.
+"""
+
+from __future__ import annotations
+
+import time
+from collections.abc import Sequence
+from dataclasses import replace
+from itertools import combinations
+
+import numpy as np
+
+from mvreg.config.align import AlignConfig, SearchConfig
+from mvreg.executor import Executor
+from mvreg.geometry import invert_transform
+from mvreg.pairwise.aligners import make_aligner
+from mvreg.pairwise.hypotheses import same_pose, scan_extent
+from mvreg.pairwise.preprocess import PreprocessedScan
+from mvreg.pairwise.result import PairResult, pair_result
+from mvreg.scales import Scales
+
+Hypotheses = dict[tuple[int, int], list[tuple[np.ndarray, dict | None]]]
+"""{(i, j): [(T_i_j, fine scores or None), ...]}: accepted hypotheses, best first."""
+
+
+def accepted_hypotheses(r: PairResult) -> list[tuple[np.ndarray, dict | None]]:
+    """The accepted hypotheses of one pair result, its kept pose first."""
+    out = list(r.stats.get("accepted_hypotheses", []))
+    if r.accepted and not any(np.allclose(r.T_i_j, K) for K, _ in out):
+        out.insert(0, (r.T_i_j, None))
+    return out
+
+
+def search_hypotheses(
+    pre: Sequence[PreprocessedScan],
+    results: Sequence[PairResult],
+    pairs: Sequence[tuple[int, int]],
+    cfg: AlignConfig,
+    search: SearchConfig,
+    executor: Executor | int,
+    *,
+    scales: Scales | None,
+) -> Hypotheses:
+    """Every pair's accepted hypotheses, with those of the rotation search added for
+    ``pairs`` (each searched once, in the order given)."""
+    hyp: Hypotheses = {(r.i, r.j): accepted_hypotheses(r) for r in results}
+    if not pairs:
+        return hyp
+    aligner = make_aligner("rotation-search", cfg, search, scales=scales, executor=executor)
+    aligner.prepare(pre)
+    for i, j in pairs:
+        res = aligner.align(pre[i], pre[j], i=i, j=j)
+        have = hyp.setdefault((i, j), [])
+        for T, scores in accepted_hypotheses(res):
+            if not any(np.allclose(T, K) for K, _ in have):
+                have.append((T, scores))
+    return hyp
+
+
+class _Agreement:
+    """Poses of scans from the placed ones through each pair's hypotheses."""
+
+    def __init__(self, pre, hyp: Hypotheses, tol: float):
+        self.hyp, self.tol = hyp, tol
+        self.extent = [scan_extent(p.points) for p in pre]
+        self.partners: dict[int, list[tuple[int, np.ndarray]]] = {}
+        for (i, j), hs in sorted(hyp.items()):
+            for T, _ in hs:  # T_i_j, and T_j_i = T_i_j^-1
+                self.partners.setdefault(j, []).append((i, T))
+                self.partners.setdefault(i, []).append((j, invert_transform(T)))
+
+    def same(self, s: int, A: np.ndarray, B: np.ndarray) -> bool:
+        centre, radius = self.extent[s]
+        return same_pose(A, B, self.tol, centre, radius)
+
+    def candidates(self, u: int, placed: dict) -> list[tuple[np.ndarray, set]]:
+        """(pose of u, the placed partners agreeing on it) for every hypothesis of a pair
+        of u with a placed scan."""
+        via = [(p, placed[p] @ T) for p, T in self.partners.get(u, []) if p in placed]
+        out = []
+        for _, A in via:
+            agree = {p for p, B in via if self.same(u, A, B)}
+            out.append((A, agree))
+        return out
+
+
+def _seeds(agreement: _Agreement, hyp: Hypotheses, overlap, limit: int, taken) -> list[dict]:
+    """Up to ``limit`` triangles of hypotheses that close within the tolerance, most
+    overlap first, none of whose scans is in ``taken``: {a: I, b: T_a_b, c: T_a_c} each."""
+    found = []
+    edges = {e for e, hs in hyp.items() if hs and not taken & set(e)}
+    scans = sorted({s for e in edges for s in e})
+    for a, b, c in combinations(scans, 3):
+        if not {(a, b), (b, c), (a, c)} <= edges:
+            continue
+        score = overlap[(a, b)] + overlap[(b, c)] + overlap[(a, c)]
+        for Tab, _ in hyp[(a, b)]:
+            for Tbc, _ in hyp[(b, c)]:
+                if any(agreement.same(c, Tab @ Tbc, Tac) for Tac, _ in hyp[(a, c)]):
+                    found.append((-score, len(found), {a: np.eye(4), b: Tab, c: Tab @ Tbc}))
+    return [f[2] for f in sorted(found, key=lambda f: f[:2])[:limit]]
+
+
+def _grow(n: int, placed: dict, agreement: _Agreement, overlap, min_agreeing: int, taken) -> dict:
+    """Place scans one at a time (module docstring), none of ``taken``; the poses of all
+    placed scans."""
+    placed = dict(placed)
+    while True:
+        best = None
+        for u in range(n):
+            if u in placed or u in taken:
+                continue
+            for A, agree in agreement.candidates(u, placed):
+                key = (len(agree), sum(overlap.get((min(p, u), max(p, u)), 0.0) for p in agree))
+                if len(agree) >= min_agreeing and (best is None or key > best[0]):
+                    best = (key, u, A)
+        if best is None:
+            return placed
+        placed[best[1]] = best[2]
+
+
+def _agreeing_pairs(placed: dict, agreement: _Agreement, hyp: Hypotheses) -> int:
+    """How many pairs between placed scans have a hypothesis agreeing with their poses."""
+    count = 0
+    for (i, j), hs in hyp.items():
+        if i in placed and j in placed:
+            want = invert_transform(placed[i]) @ placed[j]
+            count += any(agreement.same(j, T, want) for T, _ in hs)
+    return count
+
+
+def joint_choice(
+    pre: Sequence[PreprocessedScan],
+    results: Sequence[PairResult],
+    hyp: Hypotheses,
+    anchors: dict[int, np.ndarray],
+    voxel: float,
+    *,
+    max_voxels: float = 2.0,
+    min_agreeing: int = 2,
+    max_seeds: int = 20,
+    fine_voxel: float | None = None,
+) -> tuple[list[PairResult], list[dict[int, np.ndarray]]]:
+    """(results with one hypothesis chosen per pair within each set of scans placed
+    together, those sets as {scan: pose in the set's frame}, the anchors' set first) --
+    module docstring. ``anchors``: {scan: T_world_scan} taken as right; ``max_voxels``:
+    the agreement tolerance, in feature voxels, on each scan's extent."""
+    agreement = _Agreement(pre, hyp, max_voxels * voxel)
+    overlap = {(r.i, r.j): float(r.overlap_ratio) for r in results}
+    overlap.update({e: overlap.get(e, 0.0) for e in hyp})
+    anchored = {int(s): np.asarray(T, dtype=np.float64) for s, T in anchors.items()}
+    clusters: list[dict[int, np.ndarray]] = []
+    taken: set[int] = set()
+    while True:
+        if anchored and not clusters:
+            starts = [anchored]
+        else:
+            starts = _seeds(agreement, hyp, overlap, max_seeds, taken)
+        best, best_key = {}, (0, 0)
+        for start in starts:
+            grown = _grow(len(pre), start, agreement, overlap, min_agreeing, taken)
+            key = (len(grown), _agreeing_pairs(grown, agreement, hyp))
+            if key > best_key:
+                best, best_key = grown, key
+        if not best:
+            break
+        clusters.append(best)
+        taken |= set(best)
+    out = _chosen(pre, results, hyp, clusters, agreement, fine_voxel or voxel / 2)
+    return out, clusters
+
+
+def _chosen(pre, results, hyp: Hypotheses, clusters, agreement: _Agreement, fine_voxel):
+    """Each pair within a set of scans placed together with the hypothesis agreeing with
+    their poses (or rejected when none does and it was accepted); every pair carries all
+    its accepted hypotheses in ``stats["accepted_hypotheses"]`` (the model search tries them)."""
+    where = {s: (k, T) for k, c in enumerate(clusters) for s, T in c.items()}
+    out = []
+    for r in results:
+        i, j = r.i, r.j
+        hs = hyp.get((i, j), [])
+        if len(hs) > len(r.stats.get("accepted_hypotheses", [])):
+            r = replace(r, stats={**r.stats, "accepted_hypotheses": [h for h in hs if h[1]]})
+        if i not in where or j not in where or where[i][0] != where[j][0]:
+            out.append(r)
+            continue
+        want = invert_transform(where[i][1]) @ where[j][1]
+        match = next((h for h in hs if agreement.same(j, h[0], want)), None)
+        if match is None:
+            if r.accepted:
+                reason = "none of its hypotheses agrees with the poses chosen jointly"
+                r = replace(r, accepted=False, reason=reason)
+            out.append(r)
+        elif (np.allclose(match[0], r.T_i_j) and r.accepted) or match[1] is None:
+            out.append(r)
+        else:
+            stats = {**r.stats, "joint_choice": True}
+            start = time.perf_counter()
+            out.append(
+                pair_result(
+                    pre[i],
+                    pre[j],
+                    i,
+                    j,
+                    match[0],
+                    "",
+                    match[1],
+                    stats,
+                    start,
+                    fine_voxel=fine_voxel,
+                )  # fmt: skip
+            )
+    return out
+
+
+def choose_jointly(
+    pre: Sequence[PreprocessedScan],
+    results: Sequence[PairResult],
+    todo: Sequence[int],
+    anchors: dict[int, np.ndarray],
+    cfg: AlignConfig,
+    search: SearchConfig,
+    executor: Executor | int,
+    scales: Scales,
+    max_voxels: float = 2.0,
+) -> list[PairResult]:
+    """The second chance of the scans in ``todo`` (not verified by a first pass): each one's
+    ``search.joint_partners`` candidate pairs nearest by global descriptor are searched
+    (:func:`search_hypotheses`) and one hypothesis per pair is chosen jointly
+    (:func:`joint_choice`) from ``anchors`` ({scan: T_world_scan} verified). Returns the
+    results, the same objects where nothing changed."""
+    from mvreg.pairwise.candidates import global_descriptor
+
+    desc = np.stack([global_descriptor(p) for p in pre])
+    pairs: list[tuple[int, int]] = []
+    for a in sorted(todo):
+        mine = [(r.i, r.j) for r in results if a in (r.i, r.j)]
+        other = np.array([j if i == a else i for i, j in mine], dtype=np.int64)
+        order = np.argsort(np.linalg.norm(desc[other] - desc[a], axis=1), kind="stable")
+        pairs += [mine[k] for k in order[: search.joint_partners] if mine[k] not in pairs]
+    hyp = search_hypotheses(pre, results, pairs, cfg, search, executor, scales=scales)
+    new, _ = joint_choice(
+        pre, results, hyp, anchors, scales.voxel, max_voxels=max_voxels,
+        fine_voxel=scales.fine_voxel,
+    )  # fmt: skip
+    return new

@@ -31,7 +31,6 @@ from __future__ import annotations
 import time
 from collections.abc import Sequence
 from dataclasses import replace
-from itertools import combinations
 
 import numpy as np
 
@@ -114,10 +113,13 @@ def _seeds(agreement: _Agreement, hyp: Hypotheses, overlap, limit: int, taken) -
     overlap first, none of whose scans is in ``taken``: {a: I, b: T_a_b, c: T_a_c} each."""
     found = []
     edges = {e for e, hs in hyp.items() if hs and not taken & set(e)}
-    scans = sorted({s for e in edges for s in e})
-    for a, b, c in combinations(scans, 3):
-        if not {(a, b), (b, c), (a, c)} <= edges:
-            continue
+    up: dict[int, set[int]] = {}  # a -> partners b > a (triangles in O(edges x degree))
+    for a, b in edges:
+        up.setdefault(a, set()).add(b)
+    triangles = [
+        (a, b, c) for a, b in sorted(edges) for c in sorted(up.get(a, set()) & up.get(b, set()))
+    ]
+    for a, b, c in triangles:
         score = overlap[(a, b)] + overlap[(b, c)] + overlap[(a, c)]
         for Tab, _ in hyp[(a, b)]:
             for Tbc, _ in hyp[(b, c)]:

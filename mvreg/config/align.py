@@ -112,6 +112,18 @@ class SearchConfig(BaseModel):
     joint_partners: int = Field(
         4, ge=1, le=1000, description="pairs searched per unverified scan (nearest by descriptor)"
     )
+    joint_max_scans: int = Field(
+        64,
+        ge=0,
+        le=1000000,
+        description="runs with more scans skip the joint choice (its second pass is a whole "
+        "second global stage: 200 scans of 400 points took 4 min more)",
+    )
+    joint_max_pairs: int = Field(
+        48, ge=1, le=100000,
+        description="pairs searched in all by the joint choice (each scan's nearest first, "
+        "in turn), so a run with hundreds of unverified scans stays bounded",
+    )  # fmt: skip
     partners: int = Field(3, ge=1, le=1000, description="scans of the connected set tried per scan")
     offset_deg: float = Field(20.0, ge=0, le=90, description="turn of the group's copies")
     screen_source_points: int = Field(500, ge=50)

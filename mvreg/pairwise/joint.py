@@ -253,18 +253,25 @@ def choose_jointly(
 ) -> list[PairResult]:
     """The second chance of the scans in ``todo`` (not verified by a first pass): each one's
     ``search.joint_partners`` candidate pairs nearest by global descriptor are searched
-    (:func:`search_hypotheses`) and one hypothesis per pair is chosen jointly
+    (:func:`search_hypotheses`; every scan's nearest first, then the second..., at most
+    ``search.joint_max_pairs`` in all) and one hypothesis per pair is chosen jointly
     (:func:`joint_choice`) from ``anchors`` ({scan: T_world_scan} verified). Returns the
     results, the same objects where nothing changed."""
     from mvreg.pairwise.candidates import global_descriptor
 
     desc = np.stack([global_descriptor(p) for p in pre])
-    pairs: list[tuple[int, int]] = []
+    ranked = []  # per scan, its candidate pairs nearest by descriptor first
     for a in sorted(todo):
         mine = [(r.i, r.j) for r in results if a in (r.i, r.j)]
         other = np.array([j if i == a else i for i, j in mine], dtype=np.int64)
         order = np.argsort(np.linalg.norm(desc[other] - desc[a], axis=1), kind="stable")
-        pairs += [mine[k] for k in order[: search.joint_partners] if mine[k] not in pairs]
+        ranked.append([mine[k] for k in order[: search.joint_partners]])
+    pairs: list[tuple[int, int]] = []
+    for rank in range(search.joint_partners):  # every scan's nearest, then second, ...
+        for mine in ranked:
+            if rank < len(mine) and mine[rank] not in pairs:
+                pairs.append(mine[rank])
+    pairs = pairs[: search.joint_max_pairs]
     hyp = search_hypotheses(pre, results, pairs, cfg, search, executor, scales=scales)
     new, _ = joint_choice(
         pre, results, hyp, anchors, scales.voxel, max_voxels=max_voxels,

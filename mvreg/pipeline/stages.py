@@ -104,8 +104,9 @@ class UnorderedMode:
         """Pair results for a second pass, or None when nothing changed. The scans the first
         pass (``out``, ``verification``, ``dropped``) neither verified nor found
         undetermined (a symmetry more pairs cannot settle) get their pairs searched again:
-        with ``search.joint``, several hypotheses per pair chosen jointly, the verified
-        scans as anchors (:mod:`mvreg.pairwise.joint`); else with ``search.weak_scans``,
+        with ``search.joint`` (runs of at most ``search.joint_max_scans`` scans), several
+        hypotheses per pair chosen jointly, the verified scans as anchors
+        (:mod:`mvreg.pairwise.joint`); else with ``search.weak_scans``,
         :func:`mvreg.pairwise.search.confirm_weak_scans`. A run whose scans were all
         verified never gets here."""
         cfg = run.cfg
@@ -113,7 +114,7 @@ class UnorderedMode:
         todo = [s for s in range(len(pre)) if s not in done]
         if not todo or not cfg.search.enabled:
             return None
-        if cfg.search.joint:
+        if cfg.search.joint and len(pre) <= cfg.search.joint_max_scans:
             poses = {} if out.solution is None else out.T_world_scan
             anchors = {
                 s: T for s, T in poses.items()

@@ -43,14 +43,14 @@ def builtin_set(tmp_path_factory):
     return _preprocessed(folder)
 
 
-def test_bridge_groups_are_the_smaller_sides_of_bridges():
+def test_bridge_groups_are_the_two_sides_of_bridges_smaller_first():
     from mvreg.globalstage.graph import bridge_groups, bridges
 
     # A triangle 0-1-2, a bridge 2-3, a chain 3-4-5: bridges 2-3, 3-4, 4-5.
     g = {0: {1, 2}, 1: {0, 2}, 2: {0, 1, 3}, 3: {2, 4}, 4: {3, 5}, 5: {4}}
     assert bridges(g) == {frozenset((2, 3)), frozenset((3, 4)), frozenset((4, 5))}
     # Sides: {3,4,5} vs {0,1,2} (tie: the side without scan 0), {4,5}, {5} (one scan: not a group).
-    assert bridge_groups(g) == [[4, 5], [3, 4, 5]]
+    assert bridge_groups(g) == [([4, 5], [0, 1, 2, 3]), ([3, 4, 5], [0, 1, 2])]
     assert bridge_groups({0: {1, 2}, 1: {0, 2}, 2: {0, 1}}) == []
 
 
@@ -318,3 +318,33 @@ def test_a_split_off_group_is_placed_by_its_motions(builtin_set, monkeypatch):
         assert v.status == "verified" and v.evidence == "model search"
         assert _angle_deg(T, truth[s]) < 0.5
         assert np.linalg.norm(T[:3, 3] - truth[s][:3, 3]) < 2 * voxel
+
+
+def test_either_side_of_a_bridge_with_a_second_pose_gives_up_the_smaller(builtin_set, monkeypatch):
+    """Scans 0-1 and 2-3 each agree inside and meet by one pair (1-2). When only the
+    larger side's motion finds a second pose (the fit is measured on the moved side's
+    points, so the two tests need not agree), the pair's two sides are still not fixed
+    relative to each other: the smaller side (ties: the one without scan 0) is marked."""
+    from mvreg.globalstage import verify
+    from mvreg.globalstage.model_search import Alternative
+
+    pre, truth, voxel = builtin_set
+    T = {k: truth[k] for k in (0, 1, 2, 3)}
+    graph = {0: {1}, 1: {0, 2}, 2: {1, 3}, 3: {2}}
+    turn = np.eye(4)
+    turn[:3, :3] = rotation_from_vector(np.radians(180) * np.array([0.0, 0.0, 1.0]))
+    moved = []
+
+    def fake(group, *args, **kwargs):
+        moved.append(sorted(group))
+        if sorted(group) == [0, 1]:
+            return Alternative(turn, 180.0, 0.4, 1.0, False, (0.7, 1.0))
+        return None
+
+    monkeypatch.setattr(verify, "distant_alternative", fake)
+    out = {k: verify.ScanVerification(status="verified") for k in T}
+    verify.search_alternatives(out, graph, pre, T, voxel, AlignConfig())
+    assert [0, 1] in moved and [2, 3] in moved
+    assert [out[k].status for k in (0, 1)] == ["verified", "verified"]
+    assert [out[k].status for k in (2, 3)] == ["undetermined", "undetermined"]
+    assert "180 deg" in out[2].degenerate_dof

@@ -113,18 +113,22 @@ def main_block(graph: dict[int, set[int]]) -> set[int]:
     return best if len(best) >= 3 else set()
 
 
-def bridge_groups(graph: dict[int, set[int]]) -> list[list[int]]:
-    """For each bridge of the graph, the smaller of the two sides it joins (ties: the
-    side without the lowest scan index), when it has at least two scans: groups of scans
-    placed relative to the rest by that one pair. Smallest first, each once."""
-    groups = set()
+def bridge_groups(graph: dict[int, set[int]]) -> list[tuple[list[int], list[int]]]:
+    """For each bridge of the graph whose smaller side (ties: the side without the lowest
+    scan index) has at least two scans, (that side, the other side): groups of scans
+    placed relative to each other by that one pair. Smallest first, each once."""
+    groups = {}
     for edge in sorted(bridges(graph), key=sorted):
         a, b = sorted(edge)
         side_a, side_b = _reach(graph, a, {edge}), _reach(graph, b, {edge})
-        side = side_b if (len(side_b), min(side_a)) <= (len(side_a), min(side_b)) else side_a
+        side, rest = (
+            (side_b, side_a)
+            if (len(side_b), min(side_a)) <= (len(side_a), min(side_b))
+            else (side_a, side_b)
+        )
         if len(side) >= 2:
-            groups.add(tuple(sorted(side)))
-    return [list(g) for g in sorted(groups, key=lambda g: (len(g), g))]
+            groups[tuple(sorted(side))] = sorted(rest)
+    return [(list(g), groups[g]) for g in sorted(groups, key=lambda g: (len(g), g))]
 
 
 def conflict_cuts(graph: dict[int, set[int]], conflicts, weakness) -> list[frozenset]:

@@ -287,7 +287,7 @@ def _search(group, pre, T_world_scan, others, model, voxel, acfg, far_voxels, ma
         ][:limit]
 
     from_pairs = distinct_poses(from_pairs, far, *scan_extent(source.points))
-    tried = best_far(candidates) + best_far(from_pairs, 6 * max_refined, acfg.min_overlap_ratio)
+    tried = best_far(candidates) + best_far(from_pairs, 24, acfg.min_overlap_ratio)
     # Each candidate in three stages (5 and 15 ICP iterations from the RANSAC reach, 10
     # within a voxel); after each of the first two it goes on only when it lands far from
     # the current placement, in a basin no earlier candidate reached, and with at least a

@@ -30,10 +30,9 @@ Contract (pure functions on arrays, preprocessed scans and pair results; no I/O)
     :func:`~mvreg.pairwise.align.unseen_violation`) within the pairwise limits against
     every scan of its model (reported), a violation (above the pairwise limits loosened
     by ``coarse_gate_slack``) counting as a conflict with a scan that shares tight matches
-    with it; a conflict counts against this scan when the other
-    one's own evidence is stronger (cycle > model check > neither). The tests are run and reported
-    for cycle-confirmed scans too, but do not overrule a cycle (see the comment in
-    :func:`verify_scans` for what that misses).
+    with it; a conflict counts against this scan when the other one's own evidence is
+    stronger (cycle > model check > neither). The tests are run and reported for
+    cycle-confirmed scans too, but do not overrule a cycle.
 
   - ``"unverified"`` (``reason`` says which evidence is missing or contradicts it);
   - ``"undetermined"``: some degree of freedom of the scan against the model is not
@@ -54,23 +53,18 @@ Contract (pure functions on arrays, preprocessed scans and pair results; no I/O)
     :func:`search_alternatives` (below).
 
 With ``discrete``, :func:`search_alternatives` then searches every verified scan, and
-every group of verified scans that agree with each other but hang on the rest by one
-agreeing pair (:func:`bridge_groups`: each side of that pair moved as one rigid body
-against the model of the scans off it), for a second, distant pose
-(:mod:`mvreg.globalstage.model_search`): one that fits
-as well makes the scan ``"undetermined"`` (``degenerate_dof`` names the discrete turn),
-one that fits better makes it ``"unverified"``. Last, a verified scan whose agreeing
-pairs all link it to undetermined scans is undetermined too
+each side of a pair that alone joins two groups of agreeing scans (:func:`bridge_groups`,
+moved as one), for a second, distant pose (:mod:`mvreg.globalstage.model_search`): one
+that fits as well makes the scan ``"undetermined"`` (``degenerate_dof`` names the discrete
+turn), one that fits better ``"unverified"``. Last, a verified scan whose agreeing pairs
+all link it to undetermined scans is undetermined too
 (:func:`~mvreg.globalstage.probes.resting_on_undetermined`).
 
 "The other scans" are, for each scan, at most
 :data:`~mvreg.globalstage.scan_model.MODEL_SCANS` of them, those that cover most of its
-surface (:func:`~mvreg.globalstage.scan_model.model_members`; all of them in smaller sets),
-so the cost grows with the scans, not with their square.
-
-Every threshold comes from the data (feature voxel, the scans' noise estimates, point
-counts) or from the pairwise acceptance rule already in the configuration; none is fitted
-to an object.
+surface (:func:`~mvreg.globalstage.scan_model.model_members`), so the cost grows with the
+scans, not with their square. Every threshold comes from the data (feature voxel, noise,
+point counts) or the pairwise acceptance rule; none is fitted to an object.
 
 :func:`verify_and_resolve` is the pipeline loop: scans that are not verified leave the
 registered set, the rest is solved again without the pairs touching them (so a wrong pair
@@ -95,7 +89,12 @@ from mvreg.config.align import AlignConfig
 from mvreg.executor import single_threaded_blas
 from mvreg.geometry import invert_transform, transform_points
 from mvreg.globalstage.graph import bridge_groups, conflict_cuts, main_block, on_cycle, one_side
-from mvreg.globalstage.model_search import axis_turns, distant_alternative, self_symmetry
+from mvreg.globalstage.model_search import (
+    GROUP_CANDIDATES,
+    axis_turns,
+    distant_alternative,
+    self_symmetry,
+)
 from mvreg.globalstage.probes import (
     degenerate_direction,
     relative_residual_outliers,
@@ -151,12 +150,6 @@ class ScanVerification:
             "supporting_scans": list(self.supporting_scans),
         }
 
-
-# RANSAC motions refined per group of scans moved as one (single scans: the search's
-# default, 4). Groups are few (the sides of bridges), and a group's true place can rank
-# far down: teapot sparse seed 1, two views against two others, the turns about the body's
-# axis bring 0.80-0.84 of them onto the others, the true place 0.58 (11th of 14).
-GROUP_CANDIDATES = 16
 
 # ---------------------------------------------------------------------------- evidence (a)
 
@@ -306,11 +299,9 @@ def search_alternatives(
     for group, side in bridge_groups(graph):
         if any(out[s].status != "verified" for s in group):
             continue
-        # Each side against the other: the fit of a turned copy is measured on the moved
-        # side's points, so with little true overlap one side's second pose may pass and
-        # the other's fall just short (teapot sparse seed 1: two views and two others, 0.35
-        # vs 0.32 of the points against half of 0.64). Either way the pair's two sides are
-        # not fixed relative to each other; the smaller side is the one given up.
+        # Each side against the other: a second pose's fit is measured on the moved side's
+        # points, so one side's may pass and the other's fall just short (teapot sparse
+        # seed 1: 0.35 vs 0.32 against half of 0.64). The smaller side is given up.
         for moved in (group, side):
             others = [k for k in scans if k not in moved]
             if len(others) < 2:

@@ -52,11 +52,12 @@ class RefineConfig(BaseModel):
         "feature voxel (denser correspondences, less sampling bias); None: fine points",
     )
     joint_icp_iterations: int = Field(
-        10,
+        30,
         ge=0,
         le=1000,
         description="after the rounds, at most this many Gauss-Newton iterations of joint "
-        "point-to-plane ICP over all poses (mvreg.joint_icp); 0: off",
+        "point-to-plane ICP over all poses (mvreg.joint_icp; it stops earlier when no scan "
+        "moves more than joint_icp_tolerance_voxels); 0: off",
     )
     joint_icp_distance_voxels: float = Field(
         0.5, gt=0, description="joint ICP correspondence distance / feature voxel"

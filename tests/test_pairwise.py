@@ -285,6 +285,43 @@ def test_relative_residual_rule():
     assert reject_relative_outliers(results[:2]) is None
 
 
+def test_trimmed_icp_is_not_dragged_by_a_surface_the_target_lacks():
+    """A box corner (three planes, every degree of freedom fixed) whose source also holds a
+    layer 0.6 voxel above half the floor, a surface the target does not have: within a
+    voxel its points match the floor and pull the untrimmed ICP a third of a voxel off.
+    Trimming to the noise band, halved down from the voxel, brings it back to the noise
+    level, from that biased pose or from the start; a single narrow band from the biased
+    pose loses most of the true matches and stays off."""
+    from mvreg.pairwise.icp import icp_point_to_plane, icp_trimmed
+
+    rng = np.random.default_rng(0)
+    step, v, noise = 0.05, 0.5, 0.002
+    g = np.arange(0, 2, step)
+    x, y = (a.ravel() for a in np.meshgrid(g, g))
+    z = np.zeros_like(x)
+    planes = [(np.c_[x, y, z], (0, 0, 1)), (np.c_[x, z, y], (0, 1, 0)), (np.c_[z, x, y], (1, 0, 0))]
+    tgt = np.concatenate([p for p, _ in planes])
+    tn = np.concatenate([np.tile(n, (len(p), 1)) for p, n in planes]).astype(float)
+    true = tgt + rng.normal(scale=noise, size=tgt.shape) * tn
+    layer = np.c_[x[x > 1.0], y[x > 1.0], np.full(np.count_nonzero(x > 1.0), 0.3)]
+    src = np.concatenate([true, layer])
+    sn = np.concatenate([tn, np.tile([0.0, 0.0, 1.0], (len(layer), 1))])
+    tree = cKDTree(tgt)
+    start = make_transform(
+        Rotation.from_rotvec([0.01, -0.01, 0.02]).as_matrix(), [0.05, -0.03, 0.04]
+    )
+
+    def off(T):  # the largest motion of the true points from their place
+        return float(np.abs(transform_points(T, true) - true).max())
+
+    plain = icp_point_to_plane(src, sn, tgt, tn, tree, start, v, 60, 0.5)
+    assert off(plain) > 0.25 * v
+    for T0 in (plain, start):
+        assert off(icp_trimmed(src, sn, tgt, tn, tree, T0, v, 3 * noise, 0.5)) < 0.1 * noise
+    narrow = icp_point_to_plane(src, sn, tgt, tn, tree, plain, v, 30, 0.5, max_residual=3 * noise)
+    assert off(narrow) > 0.1 * v
+
+
 # ----------------------------------------------------------------------------- correspondences
 
 

@@ -15,11 +15,12 @@ the verified poses ``{scan: T_world_scan}`` and the scans to try, and returns
   with the draws among pairwise-consistent matches, :mod:`mvreg.pairwise.guided`: on the
   model of many scans few mutual matches are right), or where none of those passes, starts
   that need no descriptors (:func:`rotation_candidates`: the icosahedral rotations at
-  anchors spread over the model, a few ICP iterations each), and point-to-plane ICP on the fine
-  level bring it to a pose whose overlap share and residual pass the pairwise acceptance
-  rule (overlap at least :data:`MODEL_OVERLAP_FACTOR` x ``AlignConfig.min_overlap_ratio``,
-  residual at most ``max_residual_ratio`` x the noise), with tight
-  support from at least two verified scans (so not a single partner);
+  anchors spread over the model, a few ICP iterations each), and point-to-plane ICP on the
+  fine level (last trimmed to the noise band) bring it to a pose whose overlap share and
+  residual pass the pairwise acceptance rule (overlap at least
+  :data:`MODEL_OVERLAP_FACTOR` x ``AlignConfig.min_overlap_ratio``, residual at most
+  ``max_residual_ratio`` x the noise), with tight support from at least two verified
+  scans (so not a single partner);
 * neither free-space test conflicts with a supporting scan
   (:func:`mvreg.globalstage.verify.free_space_conflicts`, the pairwise limits as they are:
   the pose was refined by ICP on the model);
@@ -54,7 +55,7 @@ from mvreg.globalstage.probes import degenerate_direction
 from mvreg.globalstage.scan_model import model_fit, scan_model
 from mvreg.globalstage.verify import ScanVerification, free_space_conflicts
 from mvreg.pairwise.hypotheses import distinct_poses, same_pose, scan_extent
-from mvreg.pairwise.icp import feature_level_tree, icp_point_to_plane
+from mvreg.pairwise.icp import feature_level_tree, icp_point_to_plane, icp_trimmed
 
 MODEL_OVERLAP_FACTOR = 2.0
 """A pose the model alone confirms stands in for a cycle, so it must cover more of the
@@ -72,6 +73,7 @@ START_SCANS = 8
 # A group's descriptor-free starts kept (each tried on every scan of the group, once): the
 # right one is rarely the best fit when the group overlaps the model little.
 GROUP_STARTS = 48
+BASIN_STARTS = 3  # starts per basin refined (:func:`_try`)
 FIRST_STAGE_POINTS = 2000  # fine points in the wide first ICP stage of a placement
 
 
@@ -88,12 +90,13 @@ def place_leftovers(
     """Scans of ``todo`` placed on the model of the verified scans (module docstring).
 
     Candidate poses: RANSAC of the scan on the model, and every pose hypothesis of the
-    pair results (``results``: ``PairResult``, accepted or not; ``T_i_j`` and
-    ``stats["pose_hypotheses"]``) between the scan and a placed scan, carried into the
-    world frame by that scan's pose. The ``max_tries`` that bring the most of the scan's
-    feature points onto the model are refined per scan and round. Where none passes, the
-    descriptor-free starts (:func:`rotation_candidates`), for at most ``START_SCANS`` scans
-    per call, each once.
+    pair results (``results``: ``PairResult``, accepted or not; ``T_i_j``,
+    ``stats["pose_hypotheses"]`` and every hypothesis the pair's aligner accepted,
+    ``stats["accepted_hypotheses"]``) between the scan and a placed scan, carried into the
+    world frame by that scan's pose. Those that bring the most of the scan's feature points
+    onto the model are refined per scan and round, ``max_tries`` basins (:func:`_try`).
+    Where none passes, the descriptor-free starts (:func:`rotation_candidates`), for at
+    most ``START_SCANS`` scans per call, each once.
 
     ``groups``: [{scan: T_world_scan}], scans whose relative poses their own pairs fix
     (parts of the pair graph split off where views contradicted each other). A group's
@@ -168,7 +171,7 @@ def _place_one(s, pre, T_all, models, voxel, acfg, results, max_tries, starts, e
         if found is not None:
             return found, False
     # Descriptor candidates first; where none passes, starts that need no descriptors.
-    candidates = pair_poses(s, results, T_all)
+    candidates = pair_poses(s, results, T_all, accepted=True)
     if len(source.features) >= 3 and len(target.features) >= 3:
         # No pose to stay away from: far = -1 keeps every match.
         candidates += motion_candidates(
@@ -182,9 +185,12 @@ def _place_one(s, pre, T_all, models, voxel, acfg, results, max_tries, starts, e
 
 
 def _try(s, candidates, source, pre, T_all, models, voxel, acfg, max_tries, results=()):
-    """The first of the ``max_tries`` distinct candidates bringing most of the scan onto the
-    model that passes :func:`_check` after ICP on the fine level: (T, verification) or
-    None. ``results``: the pair results, whose hypotheses :func:`_check` tries as second
+    """The first candidate, in order of the share of the scan they bring onto the model,
+    that passes :func:`_check` after ICP on the fine level (last trimmed to the noise:
+    :func:`mvreg.pairwise.icp.icp_trimmed`): (T, verification) or None. At most
+    ``max_tries`` basins of the first ICP stage are refined and checked (a start landing in
+    a basin already tried is skipped), from at most ``BASIN_STARTS`` x as many distinct
+    starts. ``results``: the pair results, whose hypotheses :func:`_check` tries as second
     poses."""
     if not candidates:
         return None
@@ -196,11 +202,20 @@ def _try(s, candidates, source, pre, T_all, models, voxel, acfg, max_tries, resu
     best = distinct_poses([candidates[k] for k in order], 3 * voxel, centre, radius)
     scan = pre[s]
     reach = (acfg.ransac_distance_voxels + 1.0) * voxel
+    # Last, only the matches within the tight residual of the noise pull (the scan's
+    # overlap): the points beyond it, within a voxel of some other surface, drag a scan
+    # that overlaps the model little off its place (featuretype dense seed 1: 0.6 deg off
+    # trimmed, 3.8 deg untrimmed, from a start at 0.8 deg or at the true pose).
+    tight = acfg.tight_residual_ratio * 0.5 * (scan.noise + float(np.median(model.noise)))
     # The wide first ICP stage on an even subset of the fine points (the cost is in it);
     # starts that end in a basin already tried are not refined again.
     sub = np.unique(np.linspace(0, len(scan.fine_points) - 1, FIRST_STAGE_POINTS).astype(int))
+    # ``max_tries`` basins, from at most ``BASIN_STARTS`` x as many starts: on a
+    # near-symmetric part the best-covered starts all fall into the turned copy's basin.
     tried: list[np.ndarray] = []
-    for C in best[:max_tries]:
+    for C in best[: BASIN_STARTS * max_tries]:
+        if len(tried) == max_tries:
+            break
         T = icp_point_to_plane(
             scan.fine_points[sub], scan.fine_normals[sub], model.points, model.normals,
             model.tree, C, reach, 50, acfg.icp_min_normal_cos,
@@ -211,6 +226,10 @@ def _try(s, candidates, source, pre, T_all, models, voxel, acfg, max_tries, resu
         T = icp_point_to_plane(
             scan.fine_points, scan.fine_normals, model.points, model.normals, model.tree,
             T, voxel, 30, acfg.icp_min_normal_cos,
+        )  # fmt: skip
+        T = icp_trimmed(
+            scan.fine_points, scan.fine_normals, model.points, model.normals, model.tree,
+            T, voxel, tight, acfg.icp_min_normal_cos,
         )  # fmt: skip
         v = _check(s, T, pre, T_all, members, model, voxel, acfg, results)
         if v is not None:

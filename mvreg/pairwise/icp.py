@@ -44,11 +44,14 @@ def icp_point_to_plane(
     max_iterations: int = 30,
     min_normal_cos: float = 0.5,
     tolerance: float = 5e-3,
+    max_residual: float | None = None,
 ) -> np.ndarray:
     """Point-to-plane ICP (Gauss-Newton on a linearised rotation), deterministic.
 
     Pairs each source point with its nearest target point within ``max_dist`` whose
-    normal agrees (cosine >= ``min_normal_cos``), minimises the squared distances to the
+    normal agrees (cosine >= ``min_normal_cos``) and, with ``max_residual``, whose
+    point-to-plane distance is at most that (trimmed: points off the shared surface by
+    more than the noise allows do not pull), minimises the squared distances to the
     target tangent planes, and stops when an update moves no point by more than
     ``tolerance * max_dist`` (changing correspondences make it jitter at small scales), or
     when it is back within that of the pose two steps before: two correspondence sets that
@@ -73,6 +76,9 @@ def icp_point_to_plane(
         n = target_normals[nn[ok]]
         agree = np.einsum("ij,ij->i", n, source_normals[ok] @ T[:3, :3].T) >= min_normal_cos
         ok, n = ok[agree], n[agree]
+        if max_residual is not None:
+            near = np.abs(np.einsum("ij,ij->i", q[ok] - target[nn[ok]], n)) <= max_residual
+            ok, n = ok[near], n[near]
         if len(ok) < 6:
             break
         x = _plane_step(q[ok], target[nn[ok]], n)
@@ -86,6 +92,34 @@ def icp_point_to_plane(
             break
         if before is not None and distance(T, before) < tolerance * max_dist:
             break
+    return T
+
+
+def icp_trimmed(
+    source: np.ndarray,
+    source_normals: np.ndarray,
+    target: np.ndarray,
+    target_normals: np.ndarray,
+    target_tree: cKDTree,
+    T_target_source: np.ndarray,
+    max_dist: float,
+    max_residual: float,
+    min_normal_cos: float = 0.5,
+    iterations: int = 10,
+) -> np.ndarray:
+    """:func:`icp_point_to_plane` within ``max_dist`` with the trimming residual halved
+    from ``max_dist`` down to ``max_residual`` (``iterations`` each, three times as many
+    at the last): points off the shared surface by more than the noise allows stop
+    pulling, while a start the untrimmed matches left biased (by more than
+    ``max_residual``) is brought back before the band narrows."""
+    T, limit = T_target_source, max_dist
+    while limit > max_residual:
+        limit = max(0.5 * limit, max_residual)
+        T = icp_point_to_plane(
+            source, source_normals, target, target_normals, target_tree, T, max_dist,
+            iterations * (3 if limit == max_residual else 1), min_normal_cos,
+            max_residual=limit,
+        )  # fmt: skip
     return T
 
 

@@ -378,6 +378,33 @@ def axis_turns(
     return out
 
 
+def principal_turns(model: ScanModel, voxel: float, acfg: AlignConfig, max_points: int = 1500):
+    """Near-symmetries of the registered scans (``model``, their fine level) to try a scan
+    at: the turns of 180 deg about the three principal axes of their points through the
+    centroid (the turns that map a box, a plate or a bar onto itself), each refined by ICP
+    of the model onto itself, kept when they map at least the pairwise minimum overlap of
+    it onto itself within the acceptance rule's residual. A scan of a near-symmetric part
+    fits the turned copy of the model as well as its true place, and the copy is often the
+    one every search proposes; its true place is then the turn of that proposal."""
+    stride = max(1, len(model.points) // max_points)
+    src, src_n = model.points[::stride], model.normals[::stride]
+    centre = src.mean(axis=0)
+    _, axes = np.linalg.eigh(np.cov((src - centre).T))
+    noise = float(np.median(model.noise))
+    out = []
+    for k in range(3):
+        M = np.eye(4)
+        M[:3, :3] = Rotation.from_rotvec(np.pi * axes[:, k]).as_matrix()
+        M[:3, 3] = centre - M[:3, :3] @ centre
+        M = refine_on_model(M, src, src_n, model, voxel, acfg)
+        overlap, ratio, *_ = model_fit(
+            model, transform_points(M, src), src_n @ M[:3, :3].T, noise, voxel, acfg
+        )
+        if overlap >= acfg.min_overlap_ratio and ratio <= acfg.max_residual_ratio:
+            out.append(M)
+    return out
+
+
 def self_symmetry(
     pre,
     T_world_scan: dict[int, np.ndarray],

@@ -13,14 +13,16 @@ the verified poses ``{scan: T_world_scan}`` and the scans to try, and returns
 
 * RANSAC over descriptor matches (:func:`mvreg.globalstage.model_search.motion_candidates`,
   with the draws among pairwise-consistent matches, :mod:`mvreg.pairwise.guided`: on the
-  model of many scans few mutual matches are right), or where none of those passes, starts
-  that need no descriptors (:func:`rotation_candidates`: the icosahedral rotations at
-  anchors spread over the model, a few ICP iterations each), and point-to-plane ICP on the
-  fine level (last trimmed to the noise band) bring it to a pose whose overlap share and
-  residual pass the pairwise acceptance rule (overlap at least
-  :data:`MODEL_OVERLAP_FACTOR` x ``AlignConfig.min_overlap_ratio``, residual at most
-  ``max_residual_ratio`` x the noise), with tight support from at least two verified
-  scans (so not a single partner);
+  model of many scans few mutual matches are right); where none of those passes, the best
+  of them turned by the model's near-symmetries
+  (:func:`mvreg.globalstage.model_search.principal_turns`: on a near-symmetric part every
+  proposal may fall on the turned copy); then starts that need no descriptors
+  (:func:`rotation_candidates`: the icosahedral rotations at anchors spread over the model,
+  a few ICP iterations each); and point-to-plane ICP on the fine level (last trimmed to
+  the noise band) bring it to a pose whose overlap share and residual pass the pairwise
+  acceptance rule (overlap at least :data:`MODEL_OVERLAP_FACTOR` x
+  ``AlignConfig.min_overlap_ratio``, residual at most ``max_residual_ratio`` x the noise),
+  with tight support from at least two verified scans (so not a single partner);
 * neither free-space test conflicts with a supporting scan
   (:func:`mvreg.globalstage.verify.free_space_conflicts`, the pairwise limits as they are:
   the pose was refined by ICP on the model);
@@ -49,6 +51,7 @@ from mvreg.globalstage.model_search import (
     feature_model,
     motion_candidates,
     pair_poses,
+    principal_turns,
     share_on,
 )
 from mvreg.globalstage.probes import degenerate_direction
@@ -74,6 +77,7 @@ START_SCANS = 8
 # right one is rarely the best fit when the group overlaps the model little.
 GROUP_STARTS = 48
 BASIN_STARTS = 3  # starts per basin refined (:func:`_try`)
+TURNED_PROPOSALS = 4  # best proposals turned by the model's near-symmetries (_place_one)
 FIRST_STAGE_POINTS = 2000  # fine points in the wide first ICP stage of a placement
 
 
@@ -112,7 +116,7 @@ def _place_all(pre, T_verified, todo, voxel, acfg, results, max_tries, groups):
     placed: dict[int, tuple[np.ndarray, ScanVerification]] = {}
     T_all = dict(T_verified)
     todo = [s for s in todo if s not in T_all]
-    models: dict[tuple, tuple] = {}  # the placed set -> (feature model, fine model)
+    models: dict[tuple, list] = {}  # the placed set -> [feature model, fine model, turns]
     started: set[int] = set()  # scans that had the descriptor-free starts (once each)
     group_of = {s: g for g in groups if len(g) >= 2 for s in g}
     motions: dict[tuple, list] = {}  # a group's motions onto the model (searched once)
@@ -122,7 +126,7 @@ def _place_all(pre, T_verified, todo, voxel, acfg, results, max_tries, groups):
         for s in todo:
             key = tuple(sorted(T_all))
             if key not in models:  # rebuilt only when a scan was placed
-                models = {key: (feature_model(pre, T_all, key), scan_model(pre, T_all, key))}
+                models = {key: [feature_model(pre, T_all, key), scan_model(pre, T_all, key)]}
             starts = s not in started and len(started) < START_SCANS
             group = group_of.get(s)
             extra = _group_poses(s, group, pre, T_all, models[key][0], voxel, acfg, motions)
@@ -162,7 +166,7 @@ def _place_one(s, pre, T_all, models, voxel, acfg, results, max_tries, starts, e
     """(pose and verification of scan ``s`` on the model, or None; whether the
     descriptor-free starts were tried). ``starts``: they may be. ``extra``: candidate
     poses tried first (a group's motions)."""
-    target, _ = models
+    target = models[0]
     source = feature_model(pre, {s: np.eye(4)}, [s])
     if len(source.points) < 3 or len(target.points) < 3:
         return None, False
@@ -178,6 +182,15 @@ def _place_one(s, pre, T_all, models, voxel, acfg, results, max_tries, starts, e
             target, source, acfg, voxel, seed=s, far=-1.0, guided=True
         )  # fmt: skip
     found = _try(s, candidates, source, pre, T_all, models, voxel, acfg, max_tries, results)
+    if found is None and candidates:
+        # The same proposals turned by the model's near-symmetries: on a near-symmetric
+        # part they all fall on the turned copy, which the free-space tests refuse
+        # (featuretype sparse seed 1: every start of the scans cut off 150-180 deg away).
+        if len(models) == 2:
+            models.append(principal_turns(models[1], voxel, acfg))
+        first = _distinct_best(candidates, source, target, voxel, acfg)[:TURNED_PROPOSALS]
+        turned = [S @ C for S in models[2] for C in first]
+        found = _try(s, turned, source, pre, T_all, models, voxel, acfg, max_tries, results)
     if found is not None or not starts:
         return found, False
     cands = rotation_candidates(source, target, voxel, acfg, 4 * max_tries)
@@ -194,12 +207,10 @@ def _try(s, candidates, source, pre, T_all, models, voxel, acfg, max_tries, resu
     poses."""
     if not candidates:
         return None
-    target, model = models
+    target, model = models[0], models[1]
     members = sorted(T_all)
-    shares = [share_on(target, source, C, acfg, voxel) for C in candidates]
-    order = np.argsort(-np.asarray(shares), kind="stable")
+    best = _distinct_best(candidates, source, target, voxel, acfg)
     centre, radius = scan_extent(source.points)
-    best = distinct_poses([candidates[k] for k in order], 3 * voxel, centre, radius)
     scan = pre[s]
     reach = (acfg.ransac_distance_voxels + 1.0) * voxel
     # Last, only the matches within the tight residual of the noise pull (the scan's
@@ -235,6 +246,15 @@ def _try(s, candidates, source, pre, T_all, models, voxel, acfg, max_tries, resu
         if v is not None:
             return T, v
     return None
+
+
+def _distinct_best(candidates, source, target, voxel, acfg) -> list[np.ndarray]:
+    """``candidates`` in order of the share of ``source`` they bring onto ``target``, no
+    two within 3 voxels of each other."""
+    shares = [share_on(target, source, C, acfg, voxel) for C in candidates]
+    order = np.argsort(-np.asarray(shares), kind="stable")
+    centre, radius = scan_extent(source.points)
+    return distinct_poses([candidates[k] for k in order], 3 * voxel, centre, radius)
 
 
 def rotation_candidates(

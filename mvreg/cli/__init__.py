@@ -86,14 +86,17 @@ def run() -> None:
     was seen to end the process with 1 instead."""
     try:
         code = _main()
-    except SystemExit:
-        code = signal_exit_code()
-        if code is None:
+    except (SystemExit, KeyboardInterrupt):
+        if signal_exit_code() is None:
             raise
-        sys.stdout.flush()
-        sys.stderr.flush()
-        os._exit(code)
-    sys.exit(code)
+    if signal_exit_code() is None:
+        sys.exit(code)
+    # Also when the call returned 130 or 143 itself: the interpreter's teardown joins the
+    # worker threads, and a KeyboardInterrupt raised then ended the process by SIGINT
+    # (-2) instead of 130 once, on a loaded machine.
+    sys.stdout.flush()
+    sys.stderr.flush()
+    os._exit(signal_exit_code())
 
 
 def _main() -> int:

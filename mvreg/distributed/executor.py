@@ -18,7 +18,9 @@ thread (Dask's default environment). So poses are bit-identical to the in-proces
 Failures: a worker lost mid-task has its tasks rescheduled on the others by the scheduler
 (up to ``distributed.scheduler.allowed-failures`` times, default 3); scattered data has no
 lineage, so when every worker holding it is lost the tasks reading it are cancelled: a
-:class:`~mvreg.errors.TaskError` says so, and the next call scatters the data again; a
+:class:`~mvreg.errors.TaskError` says so, and the next call scatters the data again (under
+the key with a send count appended, so a release of the lost copy still in flight at the
+scheduler cannot take the new one); a
 task that raises is not retried (the same seed gives the same error) and comes back as a
 :class:`~mvreg.errors.TaskError` naming the scan or pair; an interrupt (Ctrl-C) while
 waiting cancels every task of the call, and :meth:`DaskExecutor.close` closes the client
@@ -85,6 +87,7 @@ class DaskExecutor:
         self.task_bytes = 0
         self.shared_bytes = 0
         self._data: dict[str, Any] = {}  # content key -> Future, for the executor's life
+        self._sends: dict[str, int] = {}  # content key -> times scattered (resends renamed)
 
     @classmethod
     def local(cls, workers: int, threads_per_worker: int = 1) -> DaskExecutor:
@@ -139,7 +142,12 @@ class DaskExecutor:
         key, size = content_key(obj)
         future = self._data.get(key)
         if future is None or future.status != "finished":  # not sent yet, or lost since
-            future = self._data[key] = self.client.scatter({key: obj}, broadcast=broadcast)[key]
+            # Sent again under a new name: the scheduler may still be releasing the lost
+            # copy, and a release landing after the new scatter took it too (a CI run:
+            # the resent data's tasks cancelled for lost dependencies).
+            sends = self._sends[key] = self._sends.get(key, 0) + 1
+            name = key if sends == 1 else f"{key}-{sends}"
+            future = self._data[key] = self.client.scatter({name: obj}, broadcast=broadcast)[name]
         return future, size
 
     def map(

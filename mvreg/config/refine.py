@@ -68,6 +68,12 @@ class RefineConfig(BaseModel):
     joint_icp_tolerance_voxels: float = Field(
         0.01, gt=0, description="joint ICP stops when no scan moves more than this"
     )
+    joint_icp_model_normals: bool = Field(
+        True,
+        description="joint ICP: normals re-estimated on the union of the registered scans "
+        "at the start poses, and once more at the converged poses, from which it runs again "
+        "(mvreg.globalstage.joint_icp.model_normals); False: the scans' own normals",
+    )
     joint_icp_max_move_voxels: float = Field(
         1.0,
         gt=0,

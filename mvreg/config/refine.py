@@ -70,9 +70,9 @@ class RefineConfig(BaseModel):
     )
     joint_icp_model_normals: bool = Field(
         True,
-        description="joint ICP: once converged on the scans' own normals, rounds of normals "
-        "re-estimated on the union of the registered scans at the poses reached and the "
-        "iterations again (mvreg.globalstage.joint_icp.model_normals); False: own normals",
+        description="joint ICP: normals re-estimated on the union of the registered scans "
+        "at the start poses, and once more at the converged poses, from which it runs again "
+        "(mvreg.globalstage.joint_icp.model_normals); False: the scans' own normals",
     )
     joint_icp_max_move_voxels: float = Field(
         1.0,

@@ -7,13 +7,11 @@ point-to-plane residuals n . (T_world_j p - T_world_i q), so a direction one pai
 free (two scans sharing a plane and a cylinder) is set by the pairs that constrain it.
 All poses move together by Gauss-Newton (Cauchy-weighted residuals, pair weights as in
 the robust rounds, the first registered scan fixed), correspondences recomputed each
-iteration, first on each scan's own normals. Once those iterations converge, the normals
-are re-estimated on the union of the registered scans at the poses reached
-(:func:`model_normals`; ``refine.joint_icp_model_normals``) and the iterations run again
-from there, in turn until a round no longer moves the scans (at most
-:data:`MODEL_NORMAL_ROUNDS`): the union is denser than any one view, and normals of sparse
-views bias the residuals; the first pass on the own normals comes first because a union of
-scans still a few tenths of a degree apart blurs the normals it gives.
+iteration. The normals are re-estimated on the union of the registered scans
+(:func:`model_normals`; ``refine.joint_icp_model_normals``): the union is denser than any
+one view, and normals of sparse views bias the residuals. They are estimated at the start
+poses, and once the iterations converge, again at those poses and the iterations rerun
+(the union of scans still off by a few tenths of a degree blurs them).
 
 The objective is not the certified one, so the step starts from the certified solution
 and the log says how far it moved every scan; a result that moves any scan further than
@@ -55,11 +53,6 @@ NEIGHBOURS = 30
 """Neighbours of a point in the union of the scans its normal comes from
 (:func:`model_normals`); Open3D's estimate for one scan takes at most as many
 (``preprocess.normal_max_neighbours``)."""
-
-MODEL_NORMAL_ROUNDS = 2
-"""At most this many rounds of normals from the union and the iterations from them, after
-the iterations on the scans' own normals (they stop once a round's first step moves no scan
-beyond the tolerance)."""
 
 
 @dataclass
@@ -215,17 +208,14 @@ def joint_icp(
 
         return terms_of
 
+    own = levels[1]
+    if cfg.joint_icp_model_normals:  # normals from the union, at the start poses
+        levels = (levels[0], model_normals(levels[0], own, T0, NEIGHBOURS), levels[2])
     T, log, final = _iterate(T0, scans, terms_with(levels), cfg, robust, voxel, centre, radius)
-    rounds, log["iterations_model_normals"] = 0, 0
-    while cfg.joint_icp_model_normals and final and rounds < MODEL_NORMAL_ROUNDS:
-        # Normals from the union of the scans so aligned, and the iterations again.
-        union = (levels[0], model_normals(levels[0], levels[1], T, NEIGHBOURS), levels[2])
-        T, again, final = _iterate(T, scans, terms_with(union), cfg, robust, voxel, centre, radius)
-        rounds += 1
-        log["iterations_model_normals"] += again["iterations"]
-        if again["iterations"] <= 1:  # no scan moved beyond the tolerance: settled
-            break
-    log["model_normal_rounds"] = rounds
+    if cfg.joint_icp_model_normals and final:  # and once more from the union so aligned
+        levels = (levels[0], model_normals(levels[0], own, T, NEIGHBOURS), levels[2])
+        T, again, final = _iterate(T, scans, terms_with(levels), cfg, robust, voxel, centre, radius)
+        log["iterations_model_normals"] = again["iterations"]
     log["residual_median_end"] = (
         float(np.median(np.abs(np.concatenate([t.r for t in final])))) if final else None
     )

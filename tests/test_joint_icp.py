@@ -114,7 +114,7 @@ def test_sparse_views_stay_at_the_truth_with_normals_from_the_union(tmp_path, me
     """Sparse views (3,000 points, ~4 own points within the normal radius): from the true
     poses, joint ICP with each scan's own normals drifts (0.45 deg on busted, 0.14 on spot
     when this test was written); with normals re-estimated on the union of the scans every
-    scan stays within 0.15 deg and 0.1% of the diagonal (measured 0.10 and 0.03 deg)."""
+    scan stays within 0.15 deg and 0.1% of the diagonal (measured 0.10 and 0.04 deg)."""
     cfg, pre, levels, truth, diag, voxel = _prepared(tmp_path, mesh, 0, views=10, points=3000)
     start = GlobalSolution({k: truth[k] for k in range(len(truth))}, None, None)
     worst = {}

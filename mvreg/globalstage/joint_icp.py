@@ -77,11 +77,12 @@ def model_normals(points, normals, T_world_scan: dict, neighbours: int) -> list:
     several times denser than one scan: a sparse view (3,000 points) holds ~4 of its own
     points within the normal radius of the dense level, and normals of so few noisy points
     bias point-to-plane residuals (idler_riser sparse seed 0: the joint ICP took the worst
-    scan from 0.17 to 0.74 deg with the scans' own normals, to 0.15 deg with these; from the
+    scan from 0.17 to 0.74 deg with the scans' own normals, to 0.17 with these; from the
     true poses, sparse busted and spot views drift 0.40-0.45 and 0.14-0.17 deg with their
     own normals, 0.10-0.11 and 0.03-0.06 with these). Dense views are unchanged (fandisk
     and cow, 20,000 points: 0.03-0.05 deg either way). Cost: one KNN normal estimate over
-    all registered points (0.5 s for 10 views of 10,000 points). Scans without a pose keep
+    all registered points (0.5 s for 10 views of 10,000 points; :func:`joint_icp` calls it
+    twice). Scans without a pose keep
     theirs. Measurements: docs/design/globalstage.md."""
     import open3d as o3d
 

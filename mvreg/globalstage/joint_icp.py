@@ -11,7 +11,8 @@ iteration. The normals are re-estimated on the union of the registered scans
 (:func:`model_normals`; ``refine.joint_icp_model_normals``): the union is denser than any
 one view, and normals of sparse views bias the residuals. They are estimated at the start
 poses, and once the iterations converge, again at those poses and the iterations rerun
-(the union of scans still off by a few tenths of a degree blurs them).
+(the union of scans still off by a few tenths of a degree blurs them), unless they moved
+no point by more than the scans' noise (the union was aligned to within it already).
 
 The objective is not the certified one, so the step starts from the certified solution
 and the log says how far it moved every scan; a result that moves any scan further than
@@ -81,9 +82,9 @@ def model_normals(points, normals, T_world_scan: dict, neighbours: int) -> list:
     true poses, sparse busted and spot views drift 0.40-0.45 and 0.14-0.17 deg with their
     own normals, 0.10-0.11 and 0.03-0.06 with these). Dense views are unchanged (fandisk
     and cow, 20,000 points: 0.03-0.05 deg either way). Cost: one KNN normal estimate over
-    all registered points (0.5 s for 10 views of 10,000 points; :func:`joint_icp` calls it
-    twice). Scans without a pose keep
-    theirs. Measurements: docs/design/globalstage.md."""
+    all registered points (0.5 s for 10 views of 10,000 points, 2 s for 80; :func:`joint_icp`
+    calls it once or twice). Scans without a pose keep theirs. Measurements:
+    docs/design/globalstage.md."""
     import open3d as o3d
 
     scans = sorted(T_world_scan)
@@ -213,7 +214,13 @@ def joint_icp(
     if cfg.joint_icp_model_normals:  # normals from the union, at the start poses
         levels = (levels[0], model_normals(levels[0], own, T0, NEIGHBOURS), levels[2])
     T, log, final = _iterate(T0, scans, terms_with(levels), cfg, robust, voxel, centre, radius)
-    if cfg.joint_icp_model_normals and final:  # and once more from the union so aligned
+    # Once more from the union so aligned, unless the first pass moved every point by less
+    # than the scans' noise: the union it estimated the normals on was then already aligned
+    # to within the noise, and a second estimate changes nothing that matters (80 builtin
+    # scans: 0.06 voxels moved; a sparse start 0.8 deg off moves several noise widths).
+    noise = float(np.median([pre[s].noise for s in scans]))
+    log["iterations_model_normals"] = 0
+    if cfg.joint_icp_model_normals and final and _max_move(T, T0, world0) > noise:
         levels = (levels[0], model_normals(levels[0], own, T, NEIGHBOURS), levels[2])
         T, again, final = _iterate(T, scans, terms_with(levels), cfg, robust, voxel, centre, radius)
         log["iterations_model_normals"] = again["iterations"]
@@ -259,6 +266,16 @@ def _iterate(T0, scans, terms_of, cfg: RefineConfig, robust, voxel, centre, radi
         if moved < cfg.joint_icp_tolerance_voxels * voxel:
             break
     return T, log, terms_of(T)
+
+
+def _max_move(T, T0, world0) -> float:
+    """The largest displacement of any scan point between poses T0 and T."""
+    return max(
+        float(
+            np.max(np.linalg.norm(transform_points(T[s] @ invert_transform(T0[s]), w) - w, axis=1))
+        )
+        for s, w in world0.items()
+    )
 
 
 def _moves(log: dict, T, T0, world0, voxel: float) -> None:

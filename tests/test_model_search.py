@@ -394,3 +394,58 @@ def test_scans_whose_every_proposal_is_the_turned_copy_are_placed_by_the_turns(
         assert v.status == "verified" and v.evidence == "model search"
         assert _angle_deg(T, truth[s]) < 0.5, (s, _angle_deg(T, truth[s]))
         assert np.linalg.norm(T[:3, 3] - truth[s][:3, 3]) < 2 * voxel
+
+
+@pytest.fixture(scope="module")
+def alien_scan(tmp_path_factory, builtin_set):
+    """A view of another object, preprocessed at the builtin set's voxel: no place on it."""
+    from data_synth import synthesize_scans
+    from mvreg.io.loaders import load_scan_file
+    from mvreg.pairwise.preprocess import preprocess_all
+    from mvreg.pairwise.scoring import prepare_scans
+
+    folder = tmp_path_factory.mktemp("alien") / "scans"
+    synthesize_scans(
+        "builtin:9", folder, views=2, noise=0.002, seed=9, random_frames=True,
+        points_per_scan=4000,
+    )  # fmt: skip
+    scan = load_scan_file(sorted(folder.glob("scan_*.ply"))[0])[0]
+    (pre,) = preprocess_all([scan], builtin_set[2])
+    prepare_scans([pre])
+    return pre
+
+
+@pytest.mark.parametrize("paired", [False, True])
+def test_a_failed_leftover_is_searched_again_only_once_a_partner_is_placed(
+    builtin_set, alien_scan, monkeypatch, paired
+):
+    """Scans 8 (a view of another object) and 3 left over, in that order. Scan 8 fails,
+    scan 3 is placed (at the truth); the next round searches scan 8 again only when it was
+    paired with scan 3 (a pair result, accepted or not): otherwise the model grew nowhere
+    its pairs said it might overlap, and the search would repeat (a 60-station scene took
+    over 18 min so)."""
+    from types import SimpleNamespace
+
+    from mvreg.globalstage import place
+
+    pre, truth, voxel = builtin_set
+    pre2 = [*pre, alien_scan]
+    alien = len(pre)
+    searched = []
+    inner = place.motion_candidates
+
+    def counted(*args, **kw):
+        searched.append(kw.get("seed"))
+        return inner(*args, **kw)
+
+    monkeypatch.setattr(place, "motion_candidates", counted)
+    monkeypatch.setattr(place, "START_SCANS", 0)  # the descriptor searches alone
+    known = {k: T for k, T in truth.items() if k != 3}
+    pair = SimpleNamespace(i=3, j=alien, T_i_j=np.eye(4), stats={}, accepted=False)
+    placed = place.place_leftovers(
+        pre2, known, [alien, 3], voxel, AlignConfig(), results=[pair] if paired else []
+    )
+    assert sorted(placed) == [3]
+    assert _angle_deg(placed[3][0], truth[3]) < 0.5
+    assert searched.count(alien) == (2 if paired else 1)
+    assert searched.count(3) == 1

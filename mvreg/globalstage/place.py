@@ -121,9 +121,13 @@ def _place_all(pre, T_verified, todo, voxel, acfg, results, max_tries, groups):
     group_of = {s: g for g in groups if len(g) >= 2 for s in g}
     motions: dict[tuple, list] = {}  # a group's motions onto the model (searched once)
     grouped: set[int] = set()  # scans that had their group's searched motions
+    partners = _partners(results, groups)
+    failed_on: dict[int, frozenset] = {}  # the placed set each scan last failed against
     while todo and len(T_all) >= 2:
         added = []
         for s in todo:
+            if s in failed_on and not (partners.get(s, set()) & (T_all.keys() - failed_on[s])):
+                continue  # none of its pair partners placed since: the same search again
             key = tuple(sorted(T_all))
             if key not in models:  # rebuilt only when a scan was placed
                 models = {key: [feature_model(pre, T_all, key), scan_model(pre, T_all, key)]}
@@ -142,10 +146,29 @@ def _place_all(pre, T_verified, todo, voxel, acfg, results, max_tries, groups):
                 T_all[s] = found[0]
                 placed[s] = found
                 added.append(s)
+            else:
+                failed_on[s] = frozenset(T_all)
         if not added:
             break
         todo = [s for s in todo if s not in added]
     return placed
+
+
+def _partners(results, groups) -> dict[int, set[int]]:
+    """{scan: the scans it was paired with (a pair result, accepted or not) or grouped
+    with}. A scan that failed is searched again only once one of these was placed: the
+    model grew where its pairs said it might overlap, and their hypotheses carry into the
+    world only through a placed partner. Up to ``pairs.all_pairs_max_scans`` scans every
+    pair is tried, so any placement counts; above it only the candidate pairs (a 60-station
+    scene: every leftover searched again after each placement took over 18 min)."""
+    out: dict[int, set[int]] = {}
+    for r in results:
+        out.setdefault(r.i, set()).add(r.j)
+        out.setdefault(r.j, set()).add(r.i)
+    for g in groups:
+        for s in g:
+            out.setdefault(s, set()).update(k for k in g if k != s)
+    return out
 
 
 def _group_poses(s, group, pre, T_all, target, voxel, acfg, motions) -> list[np.ndarray]:

@@ -122,7 +122,10 @@ def _place_all(pre, T_verified, todo, voxel, acfg, results, max_tries, groups):
     motions: dict[tuple, list] = {}  # a group's motions onto the model (searched once)
     grouped: set[int] = set()  # scans that had their group's searched motions
     partners = _partners(results, groups)
-    failed_on: dict[int, frozenset] = {}  # the placed set each scan last failed against
+    # The placed set each scan last failed against; none yet, so a scan is first searched
+    # once some pair partner of it is placed.
+    paired = {k for r in results for k in (r.i, r.j)}
+    failed_on: dict[int, frozenset] = {s: frozenset() for s in todo if s in paired}
     while todo and len(T_all) >= 2:
         added = []
         for s in todo:
@@ -156,11 +159,13 @@ def _place_all(pre, T_verified, todo, voxel, acfg, results, max_tries, groups):
 
 def _partners(results, groups) -> dict[int, set[int]]:
     """{scan: the scans it was paired with (a pair result, accepted or not) or grouped
-    with}. A scan that failed is searched again only once one of these was placed: the
-    model grew where its pairs said it might overlap, and their hypotheses carry into the
-    world only through a placed partner. Up to ``pairs.all_pairs_max_scans`` scans every
-    pair is tried, so any placement counts; above it only the candidate pairs (a 60-station
-    scene: every leftover searched again after each placement took over 18 min)."""
+    with}. A scan is searched only once one of these is placed, and after failing, again
+    only once another one was: the model then covers where its pairs said it might
+    overlap, and their hypotheses carry into the world only through a placed partner. Up
+    to ``pairs.all_pairs_max_scans`` scans every pair is tried, so any placement counts;
+    above it only the candidate pairs (a 60-station scene: every leftover searched after
+    each placement took over 18 min). A scan with no pair result at all (none given) is
+    searched from the start; a group mate placed counts for searching again."""
     out: dict[int, set[int]] = {}
     for r in results:
         out.setdefault(r.i, set()).add(r.j)

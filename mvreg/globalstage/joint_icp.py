@@ -268,24 +268,25 @@ def _iterate(T0, scans, terms_of, cfg: RefineConfig, robust, voxel, centre, radi
     return T, log, terms_of(T)
 
 
+def _displacement(T, T0, world0, s) -> float:
+    """The largest displacement of scan ``s``'s points between poses T0 and T."""
+    w = world0[s]
+    return float(
+        np.max(np.linalg.norm(transform_points(T[s] @ invert_transform(T0[s]), w) - w, axis=1))
+    )
+
+
 def _max_move(T, T0, world0) -> float:
     """The largest displacement of any scan point between poses T0 and T."""
-    return max(
-        float(
-            np.max(np.linalg.norm(transform_points(T[s] @ invert_transform(T0[s]), w) - w, axis=1))
-        )
-        for s, w in world0.items()
-    )
+    return max(_displacement(T, T0, world0, s) for s in world0)
 
 
 def _moves(log: dict, T, T0, world0, voxel: float) -> None:
     """How far each scan moved: rotation, and the largest displacement of its points."""
-    rot, disp = {}, {}
-    for s in T0:
-        D = T[s] @ invert_transform(T0[s])
-        rot[s] = float(rotation_angle_deg(D[None, :3, :3])[0])
-        w = world0[s]
-        disp[s] = float(np.max(np.linalg.norm(transform_points(D, w) - w, axis=1)))
+    rot = {
+        s: float(rotation_angle_deg((T[s] @ invert_transform(T0[s]))[None, :3, :3])[0]) for s in T0
+    }
+    disp = {s: _displacement(T, T0, world0, s) for s in T0}
     log["max_rotation_change_deg"] = max(rot.values())
     log["max_point_move"] = max(disp.values())
     log["max_point_move_voxels"] = max(disp.values()) / voxel

@@ -6,6 +6,7 @@ model (mvreg.globalstage.scan_model.model_members). Checked against data_synth's
 from __future__ import annotations
 
 import json
+from types import SimpleNamespace
 
 import numpy as np
 import pytest
@@ -13,7 +14,7 @@ from scipy.spatial.transform import Rotation
 
 from mvreg.config import RegisterConfig
 from mvreg.geometry import invert_transform, make_transform
-from mvreg.globalstage.scan_model import model_members
+from mvreg.globalstage.scan_model import Overlaps, model_members
 from mvreg.io.loaders import load_scans
 from mvreg.pairwise.preprocess import derive_scales, preprocess_all
 from mvreg.pairwise.scoring import free_space_violation, unseen_violation, view_projection
@@ -38,6 +39,22 @@ def lidar(tmp_path_factory):
     pre = preprocess_all(scans, scales.voxel, cfg.preprocess)
     T = [np.asarray(truth[s.name]) for s in scans]
     return scans, pre, T, scales, cfg
+
+
+@pytest.fixture(scope="module")
+def lidar_run(lidar, tmp_path_factory):
+    """The first 28 stations of the same loop, preprocessed at the first five's voxel,
+    with their true poses: more scans than one model holds (MODEL_SCANS)."""
+    from data_synth import synthesize_sequence
+
+    folder = tmp_path_factory.mktemp("lidar28")
+    synthesize_sequence(None, folder, frames=60, points_per_scan=8000, max_range_m=12.0, seed=0)
+    files = sorted(folder.glob("scan_*.ply"))[:28]
+    truth = json.loads((folder / "ground_truth.json").read_text())["poses"]
+    scans = load_scans(files)
+    _, _, _, scales, cfg = lidar
+    pre = preprocess_all(scans, scales.voxel, cfg.preprocess)
+    return pre, [np.asarray(truth[s.name]) for s in scans], scales.voxel
 
 
 def test_a_surround_scan_is_seen_from_its_frame_origin(lidar):
@@ -85,6 +102,57 @@ def test_a_scan_is_checked_against_the_scans_covering_most_of_it(lidar):
     assert members[2] == [1, 3]
     assert members[0] == [1, 2]
     assert model_members(pre, poses, 2.0 * scales.voxel, k=4)[0] == [1, 2, 3, 4]
+
+
+def test_searches_of_large_runs_face_only_the_scans_across():
+    """Overlaps.facing bounds a search across a bridge (or around a leftover scan's
+    partners) to the scans that share surface with the other side: on a chain of 40
+    strips each overlapping only its neighbours, one strip on each side of the middle."""
+    rng = np.random.default_rng(0)
+    strips = []
+    for i in range(40):  # strip i covers x in [i, i + 1.5] of a 1 m wide band
+        p = rng.uniform(0.0, 1.0, (3000, 3)) * [1.5, 1.0, 0.0] + [float(i), 0.0, 0.0]
+        strips.append(SimpleNamespace(points=p))
+    near = Overlaps(strips, {i: np.eye(4) for i in range(40)}, 0.1)
+    left, right = list(range(20)), list(range(20, 40))
+    assert near.facing(left, right) == [19]
+    assert near.facing(right, left) == [20]
+    assert near.facing(right, [5]) == []
+    assert near.facing(range(40), [7, 8], k=2) == [7, 8]  # the largest shares first
+    assert near.facing(range(40), [7, 8]) == [6, 7, 8, 9]
+
+
+def test_a_leftover_of_a_large_run_is_searched_near_its_pair_partner(lidar_run, monkeypatch):
+    """Beyond MODEL_SCANS + 1 placed scans, a leftover scan is searched against its placed
+    pair partner and the scans facing it (at most MODEL_SCANS), not against every placed
+    scan: along the loop, stations near its partner."""
+    from mvreg.config.align import AlignConfig
+    from mvreg.globalstage import place
+    from mvreg.globalstage.scan_model import MODEL_SCANS
+    from mvreg.pairwise.result import PairResult
+
+    pre, T, voxel = lidar_run
+    leftover, partner = 14, 13
+    known = {k: T[k] for k in range(len(T)) if k != leftover}
+    assert len(known) > MODEL_SCANS + 1
+    searched = []
+    real = place.scan_model
+    monkeypatch.setattr(
+        place, "scan_model", lambda p, poses, m: searched.append(m) or real(p, poses, m)
+    )
+    pair = PairResult(
+        i=partner, j=leftover, T_i_j=invert_transform(T[partner]) @ T[leftover],
+        overlap_ratio=0.0, inlier_rmse=0.0, num_correspondences=0, fitness=0.0,
+        accepted=False, reason="test",
+    )  # fmt: skip
+    placed = place.place_leftovers(pre, known, [leftover], voxel, AlignConfig(), results=[pair])
+    assert searched and all(partner in m and len(m) <= MODEL_SCANS for m in searched)
+    # Stations along the loop: the model holds its partner's neighbours, not the far end.
+    assert all(max(abs(k - partner) for k in m) <= MODEL_SCANS for m in searched)
+    assert all(len(m) < len(known) for m in searched)
+    if leftover in placed:  # when it is placed, at its true pose
+        R = placed[leftover][0][:3, :3] @ T[leftover][:3, :3].T
+        assert np.degrees(np.arccos(np.clip((np.trace(R) - 1) / 2, -1, 1))) < 0.5
 
 
 def test_normals_of_rings_span_the_surface(lidar):

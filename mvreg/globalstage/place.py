@@ -55,7 +55,7 @@ from mvreg.globalstage.model_search import (
     share_on,
 )
 from mvreg.globalstage.probes import degenerate_direction
-from mvreg.globalstage.scan_model import model_fit, scan_model
+from mvreg.globalstage.scan_model import MODEL_SCANS, Overlaps, model_fit, scan_model
 from mvreg.globalstage.verify import ScanVerification, free_space_conflicts
 from mvreg.pairwise.hypotheses import distinct_poses, same_pose, scan_extent
 from mvreg.pairwise.icp import feature_level_tree, icp_point_to_plane, icp_trimmed
@@ -107,7 +107,12 @@ def place_leftovers(
     scans are also tried at the group's motions: the poses of its union on the model
     (:func:`motion_candidates` and :func:`rotation_candidates` of the union, once per
     group: a group covers more of the object than any of its scans), and the motion of
-    a group mate already placed. Each scan must still pass :func:`_check` on its own."""
+    a group mate already placed. Each scan must still pass :func:`_check` on its own.
+
+    Large runs (more than ``MODEL_SCANS`` + 1 placed scans): a scan with a placed pair
+    partner is searched against its partners and the placed scans facing them
+    (:func:`_model_scans`), and tries at most ``max_tries`` of its group's searched
+    motions, so each search costs the same however many scans are placed."""
     with single_threaded_blas():  # small SVDs and solves: threads only busy-wait
         return _place_all(pre, T_verified, todo, voxel, acfg, results, max_tries, groups)
 
@@ -126,22 +131,28 @@ def _place_all(pre, T_verified, todo, voxel, acfg, results, max_tries, groups):
     # once some pair partner of it is placed.
     paired = {k for r in results for k in (r.i, r.j)}
     failed_on: dict[int, frozenset] = {s: frozenset() for s in todo if s in paired}
+    near: dict = {}  # the placed set's Overlaps (large runs, :func:`_model_scans`)
     while todo and len(T_all) >= 2:
         added = []
         for s in todo:
             if s in failed_on and not (partners.get(s, set()) & (T_all.keys() - failed_on[s])):
                 continue  # none of its pair partners placed since: the same search again
-            key = tuple(sorted(T_all))
-            if key not in models:  # rebuilt only when a scan was placed
+            key = _model_scans(s, pre, T_all, partners, voxel, near)
+            if key not in models:  # rebuilt only when a scan was placed (or another place)
                 models = {key: [feature_model(pre, T_all, key), scan_model(pre, T_all, key)]}
             starts = s not in started and len(started) < START_SCANS
             group = group_of.get(s)
             extra = _group_poses(s, group, pre, T_all, models[key][0], voxel, acfg, motions)
-            if group is not None and s in grouped:  # its group's search: once per scan
-                extra = extra[: len([k for k in group if k in T_all])]
+            if group is not None and (s in grouped or len(key) < len(T_all)):
+                # Its group's search once per scan; in a large run (its model bounded to
+                # where its pairs say it lies) only the first max_tries of it, as many as
+                # its own basins: a scene's groups tried ~65 basins per scan at ~0.3 s each.
+                mates = len([k for k in group if k in T_all])
+                extra = extra[: mates + (0 if s in grouped else max_tries)]
             grouped.add(s)
+            T_near = {k: T_all[k] for k in key}
             found, tried = _place_one(
-                s, pre, T_all, models[key], voxel, acfg, results, max_tries, starts, extra
+                s, pre, T_near, models[key], voxel, acfg, results, max_tries, starts, extra
             )  # fmt: skip
             if tried:
                 started.add(s)
@@ -155,6 +166,27 @@ def _place_all(pre, T_verified, todo, voxel, acfg, results, max_tries, groups):
             break
         todo = [s for s in todo if s not in added]
     return placed
+
+
+def _model_scans(s, pre, T_all, partners, voxel, near) -> tuple[int, ...]:
+    """The placed scans that scan ``s`` is searched against: all of them up to
+    ``MODEL_SCANS`` + 1; beyond, its placed pair partners and the placed scans that face
+    them (:class:`mvreg.globalstage.scan_model.Overlaps`), at most ``MODEL_SCANS`` in
+    all, as a verified scan's model (:func:`mvreg.globalstage.scan_model.model_members`).
+    Where its pairs say it lies is where it can be placed; a search against every placed
+    scan costs each of a scene's leftovers the whole scene. ``near``: a cache, {key:
+    Overlaps of the placed set}."""
+    placed = tuple(sorted(T_all))
+    mine = sorted(partners.get(s, set()) & T_all.keys())
+    if len(placed) <= MODEL_SCANS + 1 or not mine:
+        return placed
+    if placed not in near:
+        near.clear()
+        near[placed] = Overlaps(pre, T_all, 2.0 * voxel)
+    overlaps = near[placed]
+    mine = overlaps.facing(mine, placed, MODEL_SCANS) or mine[:MODEL_SCANS]
+    rest = [k for k in placed if k not in mine]
+    return tuple(sorted(mine + overlaps.facing(rest, mine, MODEL_SCANS - len(mine))))
 
 
 def _partners(results, groups) -> dict[int, set[int]]:

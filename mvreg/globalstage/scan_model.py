@@ -6,6 +6,8 @@ Contract: :func:`scan_model` builds the :class:`ScanModel` of some scans under t
 :func:`model_members` chooses, per scan, the other scans a check of it runs against (all of
 them up to :data:`MODEL_SCANS`, else those covering most of its surface, so the checks'
 cost grows with the scans, not their square);
+:class:`Overlaps` says which scans share surface, to bound the searches of large runs to
+the scans near the one searched;
 :func:`model_fit` scores world points with normals on it (overlap share of tight matches,
 median point-to-plane residual over the scans' noise, which model points matched);
 :func:`equally_good` says whether one pose's score is as good as another's within the
@@ -59,6 +61,32 @@ def model_members(pre, T_world_scan, cell: float, k: int = MODEL_SCANS) -> dict[
         order = np.lexsort((np.arange(len(scans)), -frac))[:k]
         out[s] = sorted(scans[b] for b in order)
     return out
+
+
+class Overlaps:
+    """Which registered scans share surface under their poses: the share of each scan's
+    cells of side ``cell`` (feature level) that each other scan occupies too. Computed once
+    per set of poses; :meth:`facing` bounds a search across a bridge or around a leftover
+    scan's partners to the scans near it (a scene of many stations: each overlaps only its
+    neighbours, and a search against all of them costs the scans squared)."""
+
+    def __init__(self, pre, T_world_scan, cell: float):
+        self.scans = sorted(T_world_scan)
+        self.index = {s: a for a, s in enumerate(self.scans)}
+        world = [transform_points(T_world_scan[s], pre[s].points) for s in self.scans]
+        shared, size = cell_sharing(world, cell)
+        self.frac = shared / np.maximum(size, 1.0)[:, None]
+
+    def facing(self, scans, others, k: int = MODEL_SCANS) -> list[int]:
+        """The scans of ``scans`` that share cells with some scan of ``others``, at most
+        ``k`` (the largest summed shares, ties: lower index), sorted."""
+        scans, others = sorted(scans), sorted(others)
+        if not scans or not others or k <= 0:
+            return []
+        ia = [self.index[s] for s in scans]
+        share = self.frac[np.ix_(ia, [self.index[o] for o in others])].sum(axis=1)
+        order = np.lexsort((np.arange(len(scans)), -share))[:k]
+        return sorted(scans[a] for a in order if share[a] > 0)
 
 
 @dataclass

@@ -102,11 +102,7 @@ from mvreg.globalstage.probes import (
     unsettled,
 )
 from mvreg.globalstage.robust import pair_disagreements
-from mvreg.globalstage.scan_model import (
-    model_fit,
-    model_members,
-    scan_model,
-)
+from mvreg.globalstage.scan_model import MODEL_SCANS, Overlaps, model_fit, model_members, scan_model
 from mvreg.pairwise.scoring import free_space_violation, unseen_violation
 
 NOTE = (
@@ -296,6 +292,8 @@ def search_alternatives(
     for s, alt in zip(todo, _map(executor, search, todo), strict=True):
         if alt is not None:
             _mark(out[s], alt, "")
+    # Beyond MODEL_SCANS + 1 scans, only the scans facing across (a chain: a bridge each)
+    near = Overlaps(pre, T_world_scan, 2.0 * voxel) if len(scans) > MODEL_SCANS + 1 else None
     for group, side in bridge_groups(graph):
         if any(out[s].status != "verified" for s in group):
             continue
@@ -304,7 +302,9 @@ def search_alternatives(
         # seed 1: 0.35 vs 0.32 against half of 0.64). The smaller side is given up.
         for moved in (group, side):
             others = [k for k in scans if k not in moved]
-            if len(others) < 2:
+            if near is not None:
+                moved, others = near.facing(moved, others), near.facing(others, moved)
+            if len(others) < 2 or not moved:
                 continue
             model = scan_model(pre, T_world_scan, others)
             alt = distant_alternative(

@@ -24,13 +24,19 @@ pytest.importorskip("trimesh")
 
 
 @pytest.fixture(scope="module")
-def lidar(tmp_path_factory):
-    """Five consecutive stations of data_synth's LiDAR loop (60 stations, 12 m range),
-    preprocessed, with their true poses."""
+def lidar_folder(tmp_path_factory):
+    """data_synth's LiDAR loop: 60 stations, 12 m range, 8000 points each."""
     from data_synth import synthesize_sequence
 
     folder = tmp_path_factory.mktemp("lidar")
     synthesize_sequence(None, folder, frames=60, points_per_scan=8000, max_range_m=12.0, seed=0)
+    return folder
+
+
+@pytest.fixture(scope="module")
+def lidar(lidar_folder):
+    """Five consecutive stations of the loop, preprocessed, with their true poses."""
+    folder = lidar_folder
     files = sorted(folder.glob("scan_*.ply"))[:5]
     truth = json.loads((folder / "ground_truth.json").read_text())["poses"]
     scans = load_scans(files)
@@ -42,13 +48,10 @@ def lidar(tmp_path_factory):
 
 
 @pytest.fixture(scope="module")
-def lidar_run(lidar, tmp_path_factory):
+def lidar_run(lidar, lidar_folder):
     """The first 28 stations of the same loop, preprocessed at the first five's voxel,
     with their true poses: more scans than one model holds (MODEL_SCANS)."""
-    from data_synth import synthesize_sequence
-
-    folder = tmp_path_factory.mktemp("lidar28")
-    synthesize_sequence(None, folder, frames=60, points_per_scan=8000, max_range_m=12.0, seed=0)
+    folder = lidar_folder
     files = sorted(folder.glob("scan_*.ply"))[:28]
     truth = json.loads((folder / "ground_truth.json").read_text())["poses"]
     scans = load_scans(files)

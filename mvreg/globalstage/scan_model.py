@@ -45,18 +45,20 @@ def cell_sharing(world: Sequence[np.ndarray], cell: float) -> tuple[np.ndarray, 
     return shared, np.diag(shared).copy()
 
 
-def model_members(pre, T_world_scan, cell: float, k: int = MODEL_SCANS) -> dict[int, list[int]]:
+def model_members(
+    pre, T_world_scan, cell: float, k: int = MODEL_SCANS, near: Overlaps | None = None
+) -> dict[int, list[int]]:
     """{scan: the other registered scans it is checked against}: all of them when there
     are at most ``k``, else the ``k`` that occupy the largest share of its cells of side
-    ``cell`` (ties: lower index), sorted."""
+    ``cell`` (ties: lower index), sorted. ``near``: the :class:`Overlaps` of these poses
+    at that cell, when the caller has it."""
     scans = sorted(T_world_scan)
     if len(scans) - 1 <= k:
         return {s: [o for o in scans if o != s] for s in scans}
-    world = [transform_points(T_world_scan[s], pre[s].points) for s in scans]
-    shared, size = cell_sharing(world, cell)
+    near = Overlaps(pre, T_world_scan, cell) if near is None else near
     out = {}
     for a, s in enumerate(scans):
-        frac = shared[a] / max(size[a], 1.0)
+        frac = near.frac[a].copy()
         frac[a] = -1.0
         order = np.lexsort((np.arange(len(scans)), -frac))[:k]
         out[s] = sorted(scans[b] for b in order)

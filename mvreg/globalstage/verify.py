@@ -276,7 +276,8 @@ def search_alternatives(
             _mark_symmetric(out, verified, sym)
             return
         turns = axis_turns(whole.points, whole.normals)  # a near axis of revolution
-    members = model_members(pre, T_world_scan, 2.0 * voxel)
+    near = Overlaps(pre, T_world_scan, 2.0 * voxel) if len(scans) > MODEL_SCANS + 1 else None
+    members = model_members(pre, T_world_scan, 2.0 * voxel, near=near)
 
     def search(s):
         others = members[s]
@@ -293,7 +294,6 @@ def search_alternatives(
         if alt is not None:
             _mark(out[s], alt, "")
     # Beyond MODEL_SCANS + 1 scans, only the scans facing across (a chain: a bridge each)
-    near = Overlaps(pre, T_world_scan, 2.0 * voxel) if len(scans) > MODEL_SCANS + 1 else None
     for group, side in bridge_groups(graph):
         if any(out[s].status != "verified" for s in group):
             continue

@@ -184,7 +184,7 @@ def _model_scans(s, pre, T_all, partners, voxel, near) -> tuple[int, ...]:
         near.clear()
         near[placed] = Overlaps(pre, T_all, 2.0 * voxel)
     overlaps = near[placed]
-    mine = overlaps.facing(mine, placed, MODEL_SCANS) or mine[:MODEL_SCANS]
+    mine = overlaps.facing(mine, placed, MODEL_SCANS)  # each shares all its own cells
     rest = [k for k in placed if k not in mine]
     return tuple(sorted(mine + overlaps.facing(rest, mine, MODEL_SCANS - len(mine))))
 

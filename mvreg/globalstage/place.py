@@ -26,8 +26,10 @@ the verified poses ``{scan: T_world_scan}`` and the scans to try, and returns
 * neither free-space test conflicts with a supporting scan
   (:func:`mvreg.globalstage.verify.free_space_conflicts`, the pairwise limits as they are:
   the pose was refined by ICP on the model);
-* no degree of freedom is left open: no continuous one
-  (:func:`mvreg.globalstage.probes.degenerate_direction`) and no second, distant pose that
+* no degree of freedom is left open: not a fit on one plane of the model
+  (:func:`mvreg.globalstage.probes.on_one_plane`: a scene's ground fits a scan at any
+  heading), no continuous one (:func:`~mvreg.globalstage.probes.degenerate_direction`)
+  and no second, distant pose that
   fits as well (:func:`mvreg.globalstage.model_search.distant_alternative`).
 
 Scans split off together (``groups``: parts of the pair graph cut where views
@@ -54,7 +56,7 @@ from mvreg.globalstage.model_search import (
     principal_turns,
     share_on,
 )
-from mvreg.globalstage.probes import degenerate_direction
+from mvreg.globalstage.probes import degenerate_direction, on_one_plane
 from mvreg.globalstage.scan_model import MODEL_SCANS, Overlaps, model_fit, scan_model
 from mvreg.globalstage.verify import ScanVerification, free_space_conflicts
 from mvreg.pairwise.hypotheses import distinct_poses, same_pose, scan_extent
@@ -394,6 +396,8 @@ def _check(s, T, pre, T_all, members, model, voxel, acfg, results=()):
     # saw nothing; at its true pose, none).
     strict = acfg.model_copy(update={"coarse_gate_slack": 1.0})
     if free_space_conflicts(v, s, members, support, pre, with_s, names, strict):
+        return None
+    if on_one_plane(model, pts, nrm, tight, idx, voxel) is not None:
         return None
     if degenerate_direction(model, pts, nrm, tight, idx, noise, voxel, acfg) is not None:
         return None

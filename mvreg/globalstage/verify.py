@@ -97,6 +97,7 @@ from mvreg.globalstage.model_search import (
 )
 from mvreg.globalstage.probes import (
     degenerate_direction,
+    on_one_plane,
     relative_residual_outliers,
     resting_on_undetermined,
     unsettled,
@@ -392,18 +393,17 @@ def free_space_conflicts(v, s, others, support, pre, T_world_scan, names, acfg) 
 
 
 def _unpinned(pts, nrm, noise_s, support, pre, T_world_scan, voxel, acfg) -> list[str]:
-    """Whether the supporting scans alone fix every degree of freedom of the scan (world
-    ``pts``, ``nrm``): :func:`degenerate_direction` against the model of ``support`` (the
-    scans placed independently of this one). Two scans can touch a scan on a surface that
-    fixes only some of its pose (a ground plane shared with the rest of a scene fixes
-    height, roll and pitch, not heading), while the rest of its fit comes from scans
-    that agree with it because they hang on the same pair: scene of 60 LiDAR stations,
-    six stations 143 deg off "verified" by the ground they shared with the others."""
+    """Whether the supporting scans alone (placed independently of this one) fix every
+    degree of freedom of the scan (world ``pts``, ``nrm``): :func:`on_one_plane`, then
+    :func:`degenerate_direction`, against their model. A scene's ground fixes height, roll
+    and pitch, not heading, while the rest of the fit comes from scans that hang on the
+    same pair (60 LiDAR stations: six 143 deg off, later four 41.6 deg off, "verified")."""
     model = scan_model(pre, T_world_scan, support)
     _, _, tight, idx, noise = model_fit(model, pts, nrm, noise_s, voxel, acfg)
     if np.count_nonzero(tight) < 2 * acfg.min_correspondences:
         return [f"only {np.count_nonzero(tight)} close matches with the scans placed without it"]
-    dof = degenerate_direction(model, pts, nrm, tight, idx, noise, voxel, acfg)
+    dof = on_one_plane(model, pts, nrm, tight, idx, voxel)
+    dof = dof or degenerate_direction(model, pts, nrm, tight, idx, noise, voxel, acfg)
     if dof is None:
         return []
     return [f"the scans placed without it fix only part of its pose, not its {dof}"]

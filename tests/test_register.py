@@ -203,6 +203,33 @@ def test_same_seed_same_poses(tmp_path):
         assert np.array_equal(outs[0][n], outs[1][n])
 
 
+def test_a_run_computes_blas_on_one_thread(tmp_path):
+    """Inside a run, BLAS uses one thread whatever the process allows, and the process's
+    limit is back after it: OpenBLAS splits products by its thread count, so sums round
+    differently with another count, and the 60-station scene registered 39 scans with
+    OpenBLAS's two threads where one thread gave 47 (docs/benchmarks/scale.md)."""
+    threadpoolctl = pytest.importorskip("threadpoolctl")
+    from mvreg import register
+
+    def blas_threads():
+        info = [p for p in threadpoolctl.threadpool_info() if p["user_api"] == "blas"]
+        return {p["num_threads"] for p in info}
+
+    seen = []
+
+    def hook(pre, results):
+        seen.append(blas_threads())
+        return results
+
+    with threadpoolctl.threadpool_limits(limits=2, user_api="blas"):
+        before = blas_threads()
+        if not before:
+            pytest.skip("no BLAS library found by threadpoolctl")
+        register(_few_bunny_scans(tmp_path), seed=0, pair_hook=hook)
+        assert blas_threads() == before
+    assert seen == [{1}]
+
+
 def test_scan_without_overlap_is_reported_unregistered(tmp_path):
     scans = _few_bunny_scans(tmp_path)
     rng = np.random.default_rng(0)

@@ -129,7 +129,8 @@ def on_one_plane(
     ``mean(1 - (n_scan . n_model)^2) / 4`` per component) and its point (world ``pts``)
     lies more than a feature ``voxel`` off the plane through the other matches: real
     structure, tilted and raised, that the scan meets at the noise. When fewer than
-    ``min_count`` of the scan's ``tight`` matches to ``model`` are, the scan
+    ``min_count`` of the scan's ``tight`` matches to ``model`` are (of at least three
+    times as many: fewer are left to the callers' own minimum of matches), the scan
     fits the model on that plane (or parallel ones) alone: its heading about the normal
     and its slide along the plane are held by nothing but the noise of the normals.
 

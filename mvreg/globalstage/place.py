@@ -29,8 +29,8 @@ the verified poses ``{scan: T_world_scan}`` and the scans to try, and returns
 * no degree of freedom is left open: not a fit on one plane of the model
   (:func:`mvreg.globalstage.probes.on_one_plane`: a scene's ground fits a scan at any
   heading), no continuous one (:func:`~mvreg.globalstage.probes.degenerate_direction`)
-  and no second, distant pose that
-  fits as well (:func:`mvreg.globalstage.model_search.distant_alternative`).
+  and no second, distant pose that fits as well
+  (:func:`mvreg.globalstage.model_search.distant_alternative`).
 
 Scans split off together (``groups``: parts of the pair graph cut where views
 contradicted each other) are also tried at their group's motions onto the model.

@@ -147,6 +147,29 @@ def test_leftover_scans_are_placed_on_the_model(builtin_set):
         assert np.linalg.norm(T[:3, 3] - truth[s][:3, 3]) < 2 * voxel
 
 
+def test_a_leftover_searched_in_vain_is_searched_again_only_from_a_new_start(builtin_set):
+    """A record of the searches that failed (kept across the passes of a run) skips a
+    scan that failed against the same placed scans from the same pair results; a new pair
+    result of it (another start) has it searched again, and placed at the truth."""
+    from mvreg.geometry import invert_transform
+    from mvreg.globalstage.place import LeftoverSearches, place_leftovers
+    from mvreg.pairwise import PairResult
+
+    pre, truth, voxel = builtin_set
+    left = [3, 6]
+    known = {k: T for k, T in truth.items() if k not in left}
+    record = LeftoverSearches()
+    record.failed = {s: (LeftoverSearches.key(s), frozenset(known)) for s in left}
+    assert place_leftovers(pre, known, left, voxel, AlignConfig(), searched=record) == {}
+    pair = PairResult(3, 0, invert_transform(truth[3]) @ truth[0], 0.5, 0.0, 100, 0.5, True, "")
+    assert LeftoverSearches.key(3, [pair]) != LeftoverSearches.key(3)
+    assert LeftoverSearches.key(6, [pair]) == LeftoverSearches.key(6)
+    placed = place_leftovers(pre, known, left, voxel, AlignConfig(), [pair], searched=record)
+    assert sorted(placed) == [3]  # 6: same start, no new partner of it placed
+    assert _angle_deg(placed[3][0], truth[3]) < 0.5
+    assert placed[3][1].status == "verified"
+
+
 def test_placement_needs_two_supporting_scans(builtin_set):
     """A placement resting on one other scan is a single unconfirmed pair: not kept."""
     from mvreg.globalstage.place import place_leftovers

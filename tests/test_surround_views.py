@@ -242,7 +242,7 @@ def test_a_leftover_is_not_placed_on_ground_alone(lidar_run):
     ground fits theirs and its objects lie beyond their range; the placement's checks
     refuse it (mvreg.globalstage.probes.on_one_plane), and no other pose passes."""
     from mvreg.config.align import AlignConfig
-    from mvreg.globalstage.place import place_leftovers
+    from mvreg.globalstage.place import LeftoverSearches, place_leftovers
 
     pre, T, voxel = lidar_run
     rest, s = list(range(9)), 20
@@ -253,5 +253,9 @@ def test_a_leftover_is_not_placed_on_ground_alone(lidar_run):
     wrong = at @ _yaw(140.0)
     pair = _pair(3, s, invert_transform(T[3]) @ wrong)
     known = {k: T[k] for k in rest}
-    placed = place_leftovers(pre, known, [s], voxel, AlignConfig(), results=[pair])
+    record = LeftoverSearches()
+    placed = place_leftovers(pre, known, [s], voxel, AlignConfig(), [pair], searched=record)
     assert s not in placed
+    # Recorded as searched in vain from this start against these stations: a second pass
+    # does not search it again unless that changes.
+    assert record.failed[s] == (LeftoverSearches.key(s, [pair]), frozenset(known))

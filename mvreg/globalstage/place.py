@@ -41,6 +41,9 @@ joint ICP (:meth:`mvreg.globalstage.stage.GlobalStage.run_verified`).
 
 from __future__ import annotations
 
+import hashlib
+from dataclasses import dataclass, field
+
 import numpy as np
 from scipy.spatial.transform import Rotation
 
@@ -83,6 +86,36 @@ TURNED_PROPOSALS = 4  # best proposals turned by the model's near-symmetries (_p
 FIRST_STAGE_POINTS = 2000  # fine points in the wide first ICP stage of a placement
 
 
+@dataclass
+class LeftoverSearches:
+    """What earlier calls of :func:`place_leftovers` searched in vain, kept across the
+    passes of a run: ``failed`` = {scan: (its key, the placed scans it failed against)}.
+
+    A scan whose key is unchanged (:meth:`key`: its pair results and its group) is searched
+    again only once a pair partner of it is placed that was not placed then: the same
+    search against the same scans repeats itself (the 60-station scene: the second pass
+    searched all 35 leftovers again, in full, and placed none)."""
+
+    failed: dict[int, tuple[str, frozenset]] = field(default_factory=dict)
+
+    @staticmethod
+    def key(s: int, results=(), group: dict | None = None) -> str:
+        """A digest of what a search of scan ``s`` starts from besides the placed scans:
+        its pair results (pair, acceptance, pose and every hypothesis) and the members of
+        its group ({scan: T_world_scan} or None; not their poses, which each pass solves
+        again to within its noise)."""
+        h = hashlib.sha1()
+        for r in results:
+            if s not in (r.i, r.j):
+                continue
+            h.update(f"{r.i},{r.j},{r.accepted};".encode())
+            hyps = [T for T, _ in r.stats.get("accepted_hypotheses", [])]
+            for T in [r.T_i_j, *r.stats.get("pose_hypotheses", []), *hyps]:
+                h.update(np.ascontiguousarray(T, dtype=np.float64).tobytes())
+        h.update(f"group {sorted(group or {})}".encode())
+        return h.hexdigest()
+
+
 def place_leftovers(
     pre,
     T_verified: dict[int, np.ndarray],
@@ -92,6 +125,7 @@ def place_leftovers(
     results=(),
     max_tries: int = 6,
     groups=(),
+    searched: LeftoverSearches | None = None,
 ) -> dict[int, tuple[np.ndarray, ScanVerification]]:
     """Scans of ``todo`` placed on the model of the verified scans (module docstring).
 
@@ -114,12 +148,19 @@ def place_leftovers(
     Large runs (more than ``MODEL_SCANS`` + 1 placed scans): a scan with a placed pair
     partner is searched against its partners and the placed scans facing them
     (:func:`_model_scans`), and tries at most ``max_tries`` of its group's searched
-    motions, so each search costs the same however many scans are placed."""
+    motions, so each search costs the same however many scans are placed.
+
+    ``searched``: a :class:`LeftoverSearches` kept across calls (the passes of a run),
+    read and updated: a scan that failed with the same key is not searched again until
+    a pair partner of it not placed then is placed."""
+    searched = LeftoverSearches() if searched is None else searched
     with single_threaded_blas():  # small SVDs and solves: threads only busy-wait
-        return _place_all(pre, T_verified, todo, voxel, acfg, results, max_tries, groups)
+        return _place_all(
+            pre, T_verified, todo, voxel, acfg, results, max_tries, groups, searched
+        )  # fmt: skip
 
 
-def _place_all(pre, T_verified, todo, voxel, acfg, results, max_tries, groups):
+def _place_all(pre, T_verified, todo, voxel, acfg, results, max_tries, groups, searched):
     placed: dict[int, tuple[np.ndarray, ScanVerification]] = {}
     T_all = dict(T_verified)
     todo = [s for s in todo if s not in T_all]
@@ -133,6 +174,10 @@ def _place_all(pre, T_verified, todo, voxel, acfg, results, max_tries, groups):
     # once some pair partner of it is placed.
     paired = {k for r in results for k in (r.i, r.j)}
     failed_on: dict[int, frozenset] = {s: frozenset() for s in todo if s in paired}
+    keys = {s: LeftoverSearches.key(s, results, group_of.get(s)) for s in todo}
+    for s in todo:  # what an earlier call searched in vain from the same start
+        if s in searched.failed and searched.failed[s][0] == keys[s]:
+            failed_on[s] = searched.failed[s][1]
     near: dict = {}  # the placed set's Overlaps (large runs, :func:`_model_scans`)
     while todo and len(T_all) >= 2:
         added = []
@@ -164,6 +209,7 @@ def _place_all(pre, T_verified, todo, voxel, acfg, results, max_tries, groups):
                 added.append(s)
             else:
                 failed_on[s] = frozenset(T_all)
+                searched.failed[s] = (keys[s], failed_on[s])
         if not added:
             break
         todo = [s for s in todo if s not in added]

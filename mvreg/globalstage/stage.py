@@ -23,7 +23,7 @@ import numpy as np
 from mvreg.config import RegisterConfig
 from mvreg.executor import Executor
 from mvreg.globalstage.joint_icp import joint_icp
-from mvreg.globalstage.place import place_leftovers
+from mvreg.globalstage.place import LeftoverSearches, place_leftovers
 from mvreg.globalstage.probes import resting_on_open_partners
 from mvreg.globalstage.refine import prepare_dense_levels, refine_rounds
 from mvreg.globalstage.robust import cycle_check, final_check, robust_rounds
@@ -102,6 +102,8 @@ class GlobalStage:
 
     def __init__(self, plan: TrackPlan):
         self.plan = plan
+        # The leftovers searched in vain, kept across the passes of the run.
+        self.searched = LeftoverSearches()
 
     def run(
         self,
@@ -162,7 +164,8 @@ class GlobalStage:
             verified = {s: T for s, T in out.T_world_scan.items() if s not in dropped}
             todo = [s for s in range(len(pre)) if s not in verified and _worth_placing(ver.get(s))]
             placed = place_leftovers(
-                pre, verified, todo, ctx.voxel, ctx.cfg.align, results, groups=groups
+                pre, verified, todo, ctx.voxel, ctx.cfg.align, results, groups=groups,
+                searched=self.searched,
             )  # fmt: skip
             for s, (T, v) in placed.items():
                 out.solution.T_world_scan[s] = T

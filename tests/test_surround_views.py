@@ -259,3 +259,30 @@ def test_a_leftover_is_not_placed_on_ground_alone(lidar_run):
     # Recorded as searched in vain from this start against these stations: a second pass
     # does not search it again unless that changes.
     assert record.failed[s] == (LeftoverSearches.key(s, [pair]), frozenset(known))
+
+
+def test_a_pair_fitting_on_the_ground_alone_is_not_accepted(lidar_run):
+    """The acceptance rule asks a pair's close matches to hold its heading and slide
+    (mvreg.pairwise.scoring.off_plane_matches): station 20 put 10 m outward of station 3
+    and turned 140 deg meets it on the ground alone (none of its matches off that plane)
+    and is rejected for it; chain neighbours at their true poses hold many more and pass."""
+    from mvreg.config.align import AlignConfig
+    from mvreg.pairwise.decision import decide
+    from mvreg.pairwise.icp import coarse_icp
+    from mvreg.pairwise.scoring import PAIR_OFF_PLANE_MATCHES, score_alignment
+
+    pre, T, voxel = lidar_run
+    cfg = AlignConfig()
+    for i, j in ((3, 4), (10, 11), (20, 21)):
+        scores = score_alignment(pre[i], pre[j], invert_transform(T[i]) @ T[j], cfg)
+        assert scores["off_plane_matches"] >= 3 * PAIR_OFF_PLANE_MATCHES, (i, j, scores)
+        assert decide(scores, cfg) == "", (i, j, decide(scores, cfg))
+    centre = np.mean([t[:3, 3] for t in T], axis=0)
+    out = T[3][:3, 3] - centre
+    out[2] = 0.0
+    at = T[3] @ make_transform(np.eye(3), T[3][:3, :3].T @ (10.0 * out / np.linalg.norm(out)))
+    T_3_20 = coarse_icp(pre[3], pre[20], invert_transform(T[3]) @ at @ _yaw(140.0), cfg, voxel)
+    scores = score_alignment(pre[3], pre[20], T_3_20, cfg)
+    assert scores["overlap_ratio"] >= cfg.min_overlap_ratio  # the ground coincides
+    assert scores["off_plane_matches"] < PAIR_OFF_PLANE_MATCHES, scores
+    assert "one plane" in decide(scores, cfg)

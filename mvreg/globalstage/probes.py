@@ -33,6 +33,7 @@ from mvreg.globalstage.scan_model import (
     overlap_spread,
 )
 from mvreg.pairwise.icp import icp_point_to_plane
+from mvreg.pairwise.scoring import OFF_PLANE_MATCHES, off_plane_matches
 
 
 def _describe(e: np.ndarray, c: np.ndarray, L: float) -> str:
@@ -105,15 +106,6 @@ def degenerate_direction(
     return None
 
 
-OFF_PLANE_MATCHES = 10
-"""Matches off a plane that hold what it leaves open (:func:`on_one_plane`): three in
-general position fix its three motions; a few times that, so that the odd coincidental
-match cannot. Measured: wrong placements on a scene's ground had 0-1 (four stations and
-a sparse featuretype view 40% of the diagonal off), right poses held by a little
-structure 5-48 (sparse machined parts: 14-48; a station hung on the ground and one
-object: 5)."""
-
-
 def on_one_plane(
     model: ScanModel,
     pts: np.ndarray,
@@ -123,34 +115,23 @@ def on_one_plane(
     voxel: float,
     min_count: int = OFF_PLANE_MATCHES,
 ) -> str | None:
-    """What a fit on one plane leaves open, or None. A match is off the plane when its
-    model normal is off the matches' dominant normal by more than four standard
-    deviations of a normal's tilt (from the matched pairs of normals:
-    ``mean(1 - (n_scan . n_model)^2) / 4`` per component) and its point (world ``pts``)
-    lies more than a feature ``voxel`` off the plane through the other matches: real
-    structure, tilted and raised, that the scan meets at the noise. When fewer than
-    ``min_count`` of the scan's ``tight`` matches to ``model`` are (of at least three
-    times as many: fewer are left to the callers' own minimum of matches), the scan
-    fits the model on that plane (or parallel ones) alone: its heading about the normal
-    and its slide along the plane are held by nothing but the noise of the normals.
+    """What a fit on one plane leaves open, or None: when fewer than ``min_count`` of
+    the scan's ``tight`` matches to ``model`` (world ``pts``, ``nrm``; ``idx`` into the
+    model) lie off the plane most of them share
+    (:func:`mvreg.pairwise.scoring.off_plane_matches`), the scan fits the model on that
+    plane (or parallel ones) alone: its heading about the normal and its slide along the
+    plane are held by nothing but the noise of the normals.
 
     :func:`degenerate_direction` misses this: the normals' noise lifts the plane's
     eigenvalues above its gate, and probing, ICP slides many voxels on the noisy normals
-    into a fit of other parts that reads worse. Both conditions for a match: the tilt of
-    estimated normals has heavy tails (a station placed 115 deg off on ground alone had
-    64 of 3408 matches beyond four deviations, all on the ground). Scene of 60 LiDAR
-    stations: five stations 41.6-115 deg off fitted the others on ground alone."""
-    n = int(np.count_nonzero(tight))
-    if n < 3 * min_count:
+    into a fit of other parts that reads worse. Scene of 60 LiDAR stations: five
+    stations 41.6-115 deg off fitted the others on ground alone."""
+    got = off_plane_matches(
+        pts[tight], nrm[tight], model.normals[idx[tight]], voxel, min_count
+    )  # fmt: skip
+    if got is None:
         return None
-    p, model_n = pts[tight], model.normals[idx[tight]]
-    cos = np.einsum("ij,ij->i", nrm[tight], model_n)
-    sigma = float(np.sqrt(np.mean(1.0 - cos**2) / 4.0))
-    axis = np.linalg.eigh(model_n.T @ model_n)[1][:, -1]
-    tilted = np.sqrt(np.clip(1.0 - (model_n @ axis) ** 2, 0.0, 1.0)) > 4.0 * sigma
-    height = p @ axis
-    level = float(np.median(height[~tilted])) if np.any(~tilted) else 0.0
-    off = int(np.count_nonzero(tilted & (np.abs(height - level) > voxel)))
+    off, n, axis = got
     if off >= min_count:
         return None
     a = axis * np.sign(axis[np.argmax(np.abs(axis))])

@@ -6,8 +6,10 @@ Takes scores from :func:`~mvreg.pairwise.scoring.score_alignment` and the
 
 ``overlap_ratio >= min_overlap_ratio``, ``residual_ratio <= max_residual_ratio``,
 ``num_correspondences >= min_correspondences`` and, when defined (not NaN),
-``free_space_violation <= max_free_space_violation`` and
-``unseen_violation <= max_unseen_violation``.
+``free_space_violation <= max_free_space_violation``,
+``unseen_violation <= max_unseen_violation`` and
+``off_plane_matches >= PAIR_OFF_PLANE_MATCHES`` (:mod:`mvreg.pairwise.scoring`: a pose whose
+close matches lie on one plane leaves its heading about the normal and its slide open).
 
 :func:`decide` returns "" when a pose passes, else the reason. :func:`verify` takes a
 pose hypothesis through feature-level ICP, a loosened rule (``coarse_gate_slack``; a pair
@@ -30,7 +32,7 @@ from mvreg.executor import single_threaded_blas
 from mvreg.pairwise.icp import coarse_icp, fine_icp
 from mvreg.pairwise.preprocess import PreprocessedScan
 from mvreg.pairwise.result import PairResult
-from mvreg.pairwise.scoring import score_alignment
+from mvreg.pairwise.scoring import PAIR_OFF_PLANE_MATCHES, score_alignment
 from mvreg.scales import Scales
 
 
@@ -55,6 +57,12 @@ def decide(scores: dict, cfg: AlignConfig, slack: float = 1.0) -> str:
         return (
             f"{scores['unseen_violation']:.3f} of the points lie where the other scan saw "
             f"nothing (limit {limit:.3f})"
+        )
+    off = scores.get("off_plane_matches", float("nan"))
+    if off < PAIR_OFF_PLANE_MATCHES:  # NaN (feature level, or too few matches to judge) passes
+        return (
+            f"its close matches lie on one plane (only {off:.0f} off it): heading and slide "
+            "along it are open"
         )
     return ""
 

@@ -8,8 +8,9 @@ Takes scores from :func:`~mvreg.pairwise.scoring.score_alignment` and the
 ``num_correspondences >= min_correspondences`` and, when defined (not NaN),
 ``free_space_violation <= max_free_space_violation``,
 ``unseen_violation <= max_unseen_violation`` and
-``off_plane_matches >= PAIR_OFF_PLANE_MATCHES`` (:mod:`mvreg.pairwise.scoring`: a pose whose
-close matches lie on one plane leaves its heading about the normal and its slide open).
+``off_plane_matches >= PAIR_OFF_PLANE_MATCHES`` (:mod:`mvreg.pairwise.scoring`, scans that
+surround their sensors: a pose whose close matches lie on one plane, a scene's ground,
+leaves its heading about the normal and its slide open).
 
 :func:`decide` returns "" when a pose passes, else the reason. :func:`verify` takes a
 pose hypothesis through feature-level ICP, a loosened rule (``coarse_gate_slack``; a pair

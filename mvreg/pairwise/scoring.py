@@ -22,11 +22,12 @@ structures (KD-trees, depth grids). ``noise`` = mean of the two scans' own
   front of the surface the other scan measured there (it saw through empty space);
 * ``unseen_violation`` (:func:`unseen_violation`): the share of points facing the other
   view's sensor where that view saw nothing at all;
-* ``off_plane_matches`` (fine level; :func:`off_plane_matches`): of the scan's matches
-  within the tight residual, how many lie off the plane most of them share, the more of
-  the two scans' counts; NaN when neither has ``3 * PAIR_OFF_PLANE_MATCHES`` such matches. A
-  pose whose matches lie on one plane (a scene's ground) is held in heading about its
-  normal and slide along it by nothing but the normals' noise.
+* ``off_plane_matches`` (fine level, scans that surround their sensors:
+  :func:`off_plane_matches`): of the scan's matches within the tight residual, how many
+  lie off the plane most of them share, the more of the two scans' counts; NaN for other
+  scans and when neither has ``3 * PAIR_OFF_PLANE_MATCHES`` such matches. A pose whose
+  matches lie on one plane (a scene's ground) is held in heading about its normal and
+  slide along it by nothing but the normals' noise.
 
 Both view tests are NaN when either scan is not a single view (the test is skipped).
 Measured values on real and synthetic scans: ``docs/design/pairwise.md``.
@@ -56,12 +57,12 @@ ground had 0-1 (four stations and a sparse featuretype view 40% of the diagonal 
 right poses held by a little structure 5-48 (sparse machined parts 14-48)."""
 
 PAIR_OFF_PLANE_MATCHES = 3
-"""The same for one pair (the acceptance rule, :mod:`mvreg.pairwise.decision`): the three
-that can fix those motions at all. A pair sees less than a union: right pairs of sparse
-featuretype views hold their heading by 3 such matches (of 779), while on the 60-station
-scene six of seven wrong pairs (20-170 deg off) had none, the seventh 5, and the right
-pairs at least 3 (two of 104 below 10). Fewer than three and the heading and the slide
-are open: the pose is a guess, whatever else fits."""
+"""The same for one pair of scans that surround their sensors (the acceptance rule,
+:mod:`mvreg.pairwise.decision`): the three that can fix those motions at all. A pair sees
+less than a union: on the 60-station LiDAR scene six of the seven pairs accepted 20-170
+deg off had none, the seventh 5, and the 104 right pairs at least 3 (two below 10,
+chain neighbours that cycles confirm). Fewer than three and the heading and the slide are
+open: the pose is a guess, whatever else fits."""
 
 
 def off_plane_matches(
@@ -104,6 +105,18 @@ def _pair_off_plane(pi, ni, pj, nj, T_i_j, near_j, near_i, tight_j, tight_i, vox
     return float(max(counts)) if counts else float("nan")
 
 
+def _surrounds(pre: PreprocessedScan) -> bool:
+    """Whether the scan surrounds its sensor (a spherical view: a spinning LiDAR, a
+    terrestrial laser scanner). Only such pairs are asked for matches off a plane: the
+    part of a plane two of them share ends at their ranges, not at an edge of the surface,
+    so nothing but structure off it holds the heading and the slide. Two views of one face
+    of an object share it up to the object's outline, which the overlap and the unseen
+    test hold (featuretype sparse seed 0: a right pair of two views of one face, no match
+    off it, overlap 0.69, 0.1 deg)."""
+    view = view_projection(pre)
+    return view is not None and view.spherical
+
+
 def score_alignment(
     pre_i: PreprocessedScan,
     pre_j: PreprocessedScan,
@@ -117,8 +130,8 @@ def score_alignment(
 
     Returns a dict: fitness, overlap_ratio, residual_ratio, median_residual, inlier_rmse,
     num_correspondences, free_space_violation and unseen_violation (always on the fine
-    level), off_plane_matches (NaN on the feature level). ``scales``: the run's (default:
-    those ``pre_i`` was preprocessed at).
+    level), off_plane_matches (NaN on the feature level and unless both scans surround
+    their sensors). ``scales``: the run's (default: those ``pre_i`` was preprocessed at).
     """
     cfg = cfg or AlignConfig()
     scales = scan_scales(pre_i) if scales is None else scales
@@ -143,7 +156,7 @@ def score_alignment(
     tight = cfg.tight_residual_ratio * noise
     median = float(np.median(res)) if len(res) else float("inf")
     off_plane = float("nan")
-    if level == "fine":
+    if level == "fine" and _surrounds(pre_i) and _surrounds(pre_j):
         tight_j, tight_i = has_j & (r_j <= tight), has_i & (r_i <= tight)
         off_plane = _pair_off_plane(
             pi, ni, pj, nj, T_i_j, near_j, near_i, tight_j, tight_i, scales.voxel

@@ -94,7 +94,7 @@ class LeftoverSearches:
     A scan whose key is unchanged (:meth:`key`: its pair results and its group) is searched
     again only once a pair partner of it is placed that was not placed then: the same
     search against the same scans repeats itself (the 60-station scene: the second pass
-    searched all 35 leftovers again, in full, and placed none)."""
+    searched all its leftovers again, in full, and placed none)."""
 
     failed: dict[int, tuple[str, frozenset]] = field(default_factory=dict)
 

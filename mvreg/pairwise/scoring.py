@@ -60,9 +60,9 @@ PAIR_OFF_PLANE_MATCHES = 3
 """The same for one pair of scans that surround their sensors (the acceptance rule,
 :mod:`mvreg.pairwise.decision`): the three that can fix those motions at all. A pair sees
 less than a union: on the 60-station LiDAR scene six of the seven pairs accepted 20-170
-deg off had none, the seventh 5, and the 104 right pairs at least 3 (two below 10,
-chain neighbours that cycles confirm). Fewer than three and the heading and the slide are
-open: the pose is a guess, whatever else fits."""
+deg off had none, the seventh 5, and the 104 right pairs at least 3 (two below 10: 3 and
+6). Fewer than three and the heading and the slide are open: the pose is a guess,
+whatever else fits."""
 
 
 def off_plane_matches(

@@ -252,7 +252,9 @@ def _violations(grid, points, normals, tolerance, min_cos, min_count) -> float:
     seen = keys[pos] == k
     c = cos[facing]
     slope = np.sqrt(np.clip(1.0 - c**2, 0.0, 1.0)) / np.maximum(c, 1e-3)
-    span = cell * view.lateral_scale(depth[facing])  # a cell's width at the point's depth
+    # A cell's width at the point's depth; a spherical view's samples count in the cells
+    # around theirs too, so its front depth can come from two cells away.
+    span = cell * view.lateral_scale(depth[facing]) * (2.0 if view.spherical else 1.0)
     ahead_of = depth[facing] > front[pos] + tolerance + span * slope
     bad = _clustered(points[facing][seen & ahead_of], cell)
     return float(bad / max(np.count_nonzero(seen), min_count))

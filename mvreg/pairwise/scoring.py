@@ -280,8 +280,9 @@ def free_space_violation(
 
     Only points facing the other scan's sensor (cosine >= ``free_space_min_facing_cos``)
     count, and the depth slack is ``free_space_tolerance_voxels * v`` plus the depth a
-    cell spans at the point's slope; violating points count only in clusters
-    (:func:`_clustered`). NaN when either scan has no view direction.
+    cell spans at the point's slope (two cells for a spherical view, whose samples also
+    count in the cells around theirs: :func:`depth_grid`); violating points count only in
+    clusters (:func:`_clustered`). NaN when either scan has no view direction.
     """
     cfg = cfg or AlignConfig()
     scales = scan_scales(pre_i) if scales is None else scales

@@ -189,11 +189,12 @@ def view_projection(pre: PreprocessedScan) -> ViewProjection | None:
 
 def depth_grid(pre: PreprocessedScan, fine_voxel: float):
     """Front-most depth of the fine points per cell (1.5 fine voxels) of a grid across the
-    view: (projection, cell, sorted cell keys, depths); None without a view. For a
-    spherical view, each point counts in its cell and the 26 around it: a spinning
-    sensor's beams lie farther apart than a fine cell, and a cell between two beams holds
-    only what a beam beside it saw past the top of a low object (scene of 60 LiDAR
-    stations: true poses read up to 0.043 of free-space violation with single cells)."""
+    view: (projection, cell, sorted cell keys, depths, reach: how many cells away a cell's
+    front depth may come from); None without a view. For a spherical view, each point
+    counts in its cell and the 26 around it (reach 2): a spinning sensor's beams lie
+    farther apart than a fine cell, and a cell between two beams holds only what a beam
+    beside it saw past the top of a low object (scene of 60 LiDAR stations: true poses
+    read up to 0.043 of free-space violation with single cells)."""
     view = view_projection(pre)
     if view is None:
         return None
@@ -201,13 +202,14 @@ def depth_grid(pre: PreprocessedScan, fine_voxel: float):
     cached = pre._cache.get("depth_grid")
     if cached is None or cached[1] != cell:
         lateral, depth, _, _ = view.project(pre.fine_points, pre.fine_normals)
-        keys = cell_keys(lateral, cell)
+        keys, reach = cell_keys(lateral, cell), 1.0
         if view.spherical:
             keys, depth = neighbour_keys(keys).ravel(), np.repeat(depth, 27)
+            reach = 2.0
         order = np.lexsort((depth, keys))
         keys, depth = keys[order], depth[order]
         last = np.flatnonzero(np.r_[keys[1:] != keys[:-1], True])
-        cached = pre._cache["depth_grid"] = (view, cell, keys[last], depth[last])
+        cached = pre._cache["depth_grid"] = (view, cell, keys[last], depth[last], reach)
     return cached
 
 
@@ -244,7 +246,7 @@ def lateral_tree(pre: PreprocessedScan):
 
 def _violations(grid, points, normals, tolerance, min_cos, min_count) -> float:
     """Share of ``points`` (in the grid scan's frame) in front of its measured surface."""
-    view, cell, keys, front = grid
+    view, cell, keys, front, reach = grid
     lateral, depth, cos, ahead = view.project(points, normals)
     facing = (cos >= min_cos) & ahead
     k = cell_keys(lateral[facing], cell)
@@ -252,9 +254,8 @@ def _violations(grid, points, normals, tolerance, min_cos, min_count) -> float:
     seen = keys[pos] == k
     c = cos[facing]
     slope = np.sqrt(np.clip(1.0 - c**2, 0.0, 1.0)) / np.maximum(c, 1e-3)
-    # A cell's width at the point's depth; a spherical view's samples count in the cells
-    # around theirs too, so its front depth can come from two cells away.
-    span = cell * view.lateral_scale(depth[facing]) * (2.0 if view.spherical else 1.0)
+    # The width at the point's depth of the cells its front depth may come from.
+    span = reach * cell * view.lateral_scale(depth[facing])
     ahead_of = depth[facing] > front[pos] + tolerance + span * slope
     bad = _clustered(points[facing][seen & ahead_of], cell)
     return float(bad / max(np.count_nonzero(seen), min_count))

@@ -477,3 +477,42 @@ def test_a_leftover_is_searched_only_once_a_pair_partner_is_placed(
     assert searched.count(a) == (1 if paired else 0)
     assert searched.count(b) == 0
     assert searched.count(3) == 1
+
+
+@pytest.mark.parametrize("undetermined", [(2, 3, 4), (3, 4)])
+def test_verified_scans_outnumbered_by_undetermined_ones_are_searched_as_one(
+    builtin_set, monkeypatch, undetermined
+):
+    """A block of verified scans that agree with each other, against more undetermined
+    ones (quadknot dense seed 1: four scans in a turned copy closing cycles, six others
+    each with a turned second pose): the block is moved as one against the model of the
+    undetermined scans, and a second pose makes it undetermined. With the verified scans
+    the more numerous side, the block is not moved (the undetermined side would be, and
+    it is undetermined already)."""
+    from mvreg.globalstage import verify
+    from mvreg.globalstage.model_search import Alternative
+
+    pre, truth, voxel = builtin_set
+    T = {k: truth[k] for k in range(5)}
+    graph = {k: {j for j in T if j != k} for k in T}  # no bridges: no bridge groups
+    turn = np.eye(4)
+    turn[:3, :3] = rotation_from_vector(np.radians(120) * np.array([0.0, 0.0, 1.0]))
+    moved = []
+
+    def fake(group, pre, T_world_scan, others, *args, **kwargs):
+        moved.append((sorted(group), sorted(others)))
+        return Alternative(turn, 120.0, 0.8, 1.0, False, (0.9, 1.0)) if len(group) > 1 else None
+
+    monkeypatch.setattr(verify, "distant_alternative", fake)
+    out = {k: verify.ScanVerification(status="verified", evidence="cycle") for k in T}
+    for k in undetermined:
+        out[k].status, out[k].evidence = "undetermined", ""
+    verify.search_alternatives(out, graph, pre, T, voxel, AlignConfig())
+    block = [k for k in T if k not in undetermined]
+    if len(block) < len(undetermined):
+        assert (block, list(undetermined)) in moved
+        assert all(out[k].status == "undetermined" for k in T)
+        assert "120 deg" in out[0].degenerate_dof and "moved as one with scan" in out[0].reason
+    else:
+        assert all(len(g) == 1 for g, _ in moved)
+        assert [out[k].status for k in block] == ["verified"] * len(block)

@@ -626,3 +626,33 @@ def test_split_conflicts_in_runs_equals_one_link_at_a_time(scans):
     got, got_refused = split_tracks(label, 1, bad, ea, eb, edge_len, vert_scan)
     assert got_refused == refused > 0
     assert np.array_equal(got, expect)
+
+
+def test_a_view_seen_through_another_contradicts_it_without_shared_surface(synthetic_pre):
+    """More than half of a scan's facing points in another scan's free space is a conflict
+    whatever the surface they share (mvreg.globalstage.conflicts): the back view turned
+    to face the front sensor and moved 0.3 towards it shares no close match with the
+    front view, yet lies in the space the front view saw through. At the true poses,
+    neither test reads anything of note and there is no conflict."""
+    from mvreg.globalstage.conflicts import free_space_conflicts
+    from mvreg.globalstage.verify import ScanVerification
+
+    pre, T_world_local = synthetic_pre
+    names, acfg = [p.name for p in pre], AlignConfig()
+    truth = {0: T_world_local[0], 2: T_world_local[2]}
+    v = ScanVerification(status="verified")
+    assert free_space_conflicts(v, 2, [0], [], pre, truth, names, acfg) == []
+    assert v.free_space_violation < 0.01
+    centre = transform_points(T_world_local[2], pre[2].points).mean(axis=0)
+    turn = Rotation.from_euler("z", 180, degrees=True).as_matrix()
+    front = transform_points(T_world_local[0], pre[0].points).mean(axis=0) - centre
+    shift = 0.3 * np.array([1.0, 0.0, 0.0]) + np.array([front[0], 0.0, 0.0])
+    moved = make_transform(turn, centre - turn @ centre + shift) @ T_world_local[2]
+    placed = {0: T_world_local[0], 2: moved}
+    conflicts = free_space_conflicts(v, 2, [0], [], pre, placed, names, acfg)
+    assert v.free_space_violation > acfg.max_free_space_apart
+    assert [(k, gross) for k, _, gross in conflicts] == [(0, True)]
+    assert "front.npy's free space" in conflicts[0][1]
+    # Not gross below the bound, and then not a conflict with a scan outside the support
+    loose = acfg.model_copy(update={"max_free_space_apart": 1.0})
+    assert free_space_conflicts(v, 2, [0], [], pre, placed, names, loose) == []

@@ -268,3 +268,38 @@ def test_final_statuses_leave_no_scan_verified_by_partners_that_are_not():
         "verified", "verified", "unverified", "verified",
     ]  # fmt: skip
     assert "(scan_6)" in out[3].reason and out[1].degenerate_dof == "that of scan_0"
+
+
+def test_a_gross_conflict_counts_against_the_weaker_side_even_against_a_cycle():
+    """settle_conflicts: an ordinary conflict never overrules a cycle and equal evidence
+    overrules neither; a gross one (a view seen through another) goes against the weaker
+    side, cycle or not, then against the one the others cover less, and against both when
+    they tie (idler_riser dense seed 0: two scans of one agreeing pair each, 0.982 of
+    each in the other's free space; the wrong one covered 0.13 by the others, the right
+    one 0.37)."""
+    from mvreg.globalstage.conflicts import settle_conflicts
+    from mvreg.globalstage.verify import ScanVerification
+
+    def ver(evidence, pairs, overlap):
+        return ScanVerification(
+            "verified", evidence=evidence, agreeing_pairs=["p"] * pairs, model_overlap=overlap
+        )
+
+    def settle(a, b, gross):
+        out = {0: a, 1: b}
+        conflicts = {0: [(1, "seen 0", gross)], 1: [(0, "seen 1", gross)]}
+        settle_conflicts(out, conflicts, [0, 1])
+        return [out[s].status for s in (0, 1)]
+
+    # ordinary: a cycle stands; equal evidence overrules neither; more pairs win
+    assert settle(ver("cycle", 2, 0.9), ver("cycle", 3, 0.9), False) == ["verified"] * 2
+    assert settle(ver("", 1, 0.13), ver("", 1, 0.37), False) == ["verified"] * 2
+    assert settle(ver("", 1, 0.9), ver("", 2, 0.9), False) == ["unverified", "verified"]
+    # gross: a cycle falls to a stronger cycle; a tie goes to the better covered; a full
+    # tie against both
+    assert settle(ver("cycle", 2, 0.9), ver("cycle", 3, 0.9), True) == ["unverified", "verified"]
+    assert settle(ver("", 1, 0.13), ver("", 1, 0.37), True) == ["unverified", "verified"]
+    assert settle(ver("", 1, 0.5), ver("", 1, 0.5), True) == ["unverified"] * 2
+    a = ver("", 1, 0.13)
+    settle(a, ver("", 1, 0.37), True)
+    assert a.reason == "seen 0" and a.evidence == ""

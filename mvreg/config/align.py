@@ -59,6 +59,14 @@ class AlignConfig(BaseModel):
     max_free_space_violation: float = Field(
         0.005, ge=0, le=1, description="share of points seen in front of the other view"
     )
+    max_free_space_apart: float = Field(
+        0.5,
+        gt=0,
+        le=1,
+        description="verification: a share of a scan's facing points in any other registered "
+        "scan's free space above this contradicts one of the two poses, surface shared or not "
+        "(right poses read a few percent: docs/design/verification.md)",
+    )
     free_space_tolerance_voxels: float = Field(1.0, gt=0, description="depth slack / v")
     max_unseen_violation: float = Field(
         0.008,

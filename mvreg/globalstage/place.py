@@ -24,7 +24,7 @@ the verified poses ``{scan: T_world_scan}`` and the scans to try, and returns
   ``AlignConfig.min_overlap_ratio``, residual at most ``max_residual_ratio`` x the noise),
   with tight support from at least two verified scans (so not a single partner);
 * neither free-space test conflicts with a supporting scan
-  (:func:`mvreg.globalstage.verify.free_space_conflicts`, the pairwise limits as they are:
+  (:func:`mvreg.globalstage.conflicts.free_space_conflicts`, the pairwise limits as they are:
   the pose was refined by ICP on the model);
 * no degree of freedom is left open: not a fit on one plane of the model
   (:func:`mvreg.globalstage.probes.on_one_plane`: a scene's ground fits a scan at any
@@ -50,6 +50,7 @@ from scipy.spatial.transform import Rotation
 from mvreg.config.align import AlignConfig
 from mvreg.executor import single_threaded_blas
 from mvreg.geometry import invert_transform, transform_points
+from mvreg.globalstage.conflicts import free_space_conflicts
 from mvreg.globalstage.model_search import (
     FeatureModel,
     distant_alternative,
@@ -61,7 +62,7 @@ from mvreg.globalstage.model_search import (
 )
 from mvreg.globalstage.probes import degenerate_direction, on_one_plane
 from mvreg.globalstage.scan_model import MODEL_SCANS, Overlaps, model_fit, scan_model
-from mvreg.globalstage.verify import ScanVerification, free_space_conflicts
+from mvreg.globalstage.verify import ScanVerification
 from mvreg.pairwise.hypotheses import distinct_poses, same_pose, scan_extent
 from mvreg.pairwise.icp import feature_level_tree, icp_point_to_plane, icp_trimmed
 

@@ -32,7 +32,9 @@ Contract (pure functions on arrays, preprocessed scans and pair results; no I/O)
     by ``coarse_gate_slack``) counting as a conflict with a scan that shares tight matches
     with it; a conflict counts against this scan when the other one's own evidence is
     stronger (cycle > model check > neither). The tests are run and reported for
-    cycle-confirmed scans too, but do not overrule a cycle.
+    cycle-confirmed scans too, but do not overrule a cycle; more than half the facing
+    points in any other scan's free space does, on the weaker side (or both, on a tie:
+    :mod:`mvreg.globalstage.conflicts`).
 
   - ``"unverified"`` (``reason`` says which evidence is missing or contradicts it);
   - ``"undetermined"``: some degree of freedom of the scan against the model is not
@@ -87,7 +89,8 @@ import numpy as np
 
 from mvreg.config.align import AlignConfig
 from mvreg.executor import single_threaded_blas
-from mvreg.geometry import invert_transform, transform_points
+from mvreg.geometry import transform_points
+from mvreg.globalstage.conflicts import free_space_conflicts, settle_conflicts
 from mvreg.globalstage.graph import bridge_groups, conflict_cuts, main_block, on_cycle, one_side
 from mvreg.globalstage.model_search import (
     GROUP_CANDIDATES,
@@ -104,7 +107,6 @@ from mvreg.globalstage.probes import (
 )
 from mvreg.globalstage.robust import pair_disagreements
 from mvreg.globalstage.scan_model import MODEL_SCANS, Overlaps, model_fit, model_members, scan_model
-from mvreg.pairwise.scoring import free_space_violation, unseen_violation
 
 NOTE = (
     "the certificate proves the global solve optimal for the accepted pairs; verification "
@@ -217,8 +219,8 @@ def verify_scans(
     out = {s: c[0] for s, c in zip(scans, checked, strict=True)}
     conflicts = {s: c[1] for s, c in zip(scans, checked, strict=True)}
     for s in scans:
-        out[s].conflicting = sorted({k for k, _ in conflicts[s]})
-    _settle_conflicts(out, conflicts, scans)
+        out[s].conflicting = sorted({c[0] for c in conflicts[s]})
+    settle_conflicts(out, conflicts, scans)
     relative_residual_outliers(out, pre, acfg)
     if discrete:
         search_alternatives(out, graph, pre, T_world_scan, voxel, acfg, results, executor)
@@ -316,6 +318,29 @@ def search_alternatives(
                 for s in group:
                     _mark(out[s], alt, ", ".join(names[k] for k in group if k != s))
                 break
+    _search_outnumbered(out, pre, T_world_scan, voxel, acfg, results, turns, near)
+
+
+def _search_outnumbered(out, pre, T_world_scan, voxel, acfg, results, turns, near) -> None:
+    """The verified scans moved as one against the model of the undetermined ones, when
+    these are more: a block that agrees with itself cannot confirm itself (quadknot dense
+    seed 1: four scans closing cycles in a copy turned 120-180 deg, the six others each
+    with a turned second pose). The smaller side is moved, as for a bridge."""
+    names = [p.name for p in pre]
+    moved = [s for s in sorted(T_world_scan) if out[s].status == "verified"]
+    others = [s for s in sorted(T_world_scan) if out[s].status == "undetermined"]
+    if near is not None:
+        moved, others = near.facing(moved, others), near.facing(others, moved)
+    if not moved or len(others) < max(2, len(moved) + 1):
+        return
+    model = scan_model(pre, T_world_scan, others)
+    alt = distant_alternative(
+        moved, pre, T_world_scan, others, model, voxel, acfg, results=results, turns=turns,
+        max_refined=GROUP_CANDIDATES,
+    )  # fmt: skip
+    if alt is not None:
+        for s in moved:
+            _mark(out[s], alt, ", ".join(names[k] for k in moved if k != s))
 
 
 def _check_scan(s, pre, T_world_scan, graph, cycle, main, voxel, acfg, agree_voxels, others):
@@ -366,32 +391,6 @@ def _check_scan(s, pre, T_world_scan, graph, cycle, main, voxel, acfg, agree_vox
     return v, conflicts
 
 
-def free_space_conflicts(v, s, others, support, pre, T_world_scan, names, acfg) -> list:
-    """Both free-space tests of scan ``s`` against every scan of ``others`` (the largest
-    values go into ``v``); the conflicts, with scans ``s`` shares close matches with only."""
-    T = T_world_scan[s]
-    fs_all, un_all, conflicts = [], [], []
-    for k in others:
-        T_k_s = invert_transform(T_world_scan[k]) @ T
-        fs = free_space_violation(pre[k], pre[s], T_k_s, acfg)
-        un = unseen_violation(pre[k], pre[s], T_k_s, acfg)
-        fs_all.append(fs)
-        un_all.append(un)
-        if k not in support:
-            # Reported, but a conflict only with a scan that shares surface with this one
-            # (why: docs/design/verification.md).
-            continue
-        # The pairwise limits loosened as for a pose not refined on that pair
-        # (coarse_gate_slack): no ICP of this scan on k has tightened it.
-        if fs > min(1.0, acfg.max_free_space_violation * acfg.coarse_gate_slack):
-            conflicts.append((k, f"{fs:.3f} of the points in {names[k]}'s free space"))
-        if un > min(1.0, acfg.max_unseen_violation * acfg.coarse_gate_slack):
-            conflicts.append((k, f"{un:.3f} of the points where {names[k]} saw nothing"))
-    v.free_space_violation = float(np.nanmax(fs_all)) if np.any(np.isfinite(fs_all)) else None
-    v.unseen_violation = float(np.nanmax(un_all)) if np.any(np.isfinite(un_all)) else None
-    return conflicts
-
-
 def _unpinned(pts, nrm, noise_s, support, pre, T_world_scan, voxel, acfg) -> list[str]:
     """Whether the supporting scans alone (placed independently of this one) fix every
     degree of freedom of the scan (world ``pts``, ``nrm``): :func:`on_one_plane`, then
@@ -430,32 +429,6 @@ def _model_problems(overlap, ratio, support, agreeing, v, names, acfg) -> list[s
             )
         )
     return problems
-
-
-def _settle_conflicts(out, conflicts, scans) -> None:
-    """A free-space conflict between s and k counts against s when k's own evidence is
-    stronger: cycle > passing the model check > neither, and between two scans that pass
-    the model check, the one whose pose more accepted pairs agree with (a pose resting on
-    one pairwise estimate loses against one that two or more estimates agree on; equal
-    counts do not overrule each other); cycle evidence stands (why:
-    docs/design/verification.md)."""
-    strength = {
-        k: (
-            2 if out[k].evidence == "cycle" else 1 if out[k].status == "verified" else 0,
-            len(out[k].agreeing_pairs),
-        )
-        for k in scans
-    }
-    for s in scans:
-        v = out[s]
-        if v.status == "undetermined" or strength[s][0] == 2:
-            continue
-        against = [why for k, why in conflicts.get(s, []) if strength[k] > strength[s]]
-        if against:
-            v.reason = "; ".join(([v.reason] if v.reason else []) + against)
-            v.status, v.evidence = "unverified", ""
-        elif v.status == "verified" and not v.evidence:
-            v.evidence = "model"
 
 
 # ---------------------------------------------------------------------------- pipeline loop
@@ -551,7 +524,8 @@ def _cut_links(ver, pre, results, solved, voxel, agree_voxels) -> tuple[list[fro
     two scans whose views contradict each other stay joined through a single pair. Ties go
     against the more ambiguous pair: more distinct hypotheses that passed the acceptance
     rule, then one found by the rotation search (no descriptor consensus), then the lower
-    final weight."""
+    final weight; before all these, a pair of a scan that lost a conflict
+    (:func:`~mvreg.globalstage.conflicts.settle_conflicts`) goes first."""
     T = {s: T for s, T in solved.T_world_scan.items() if s in ver}
     graph = agreeing_graph(pre, results, solved.pair_weight, T, voxel, agree_voxels)
     conflicts = {(s, k) for s, v in ver.items() for k in v.conflicting if k in graph}
@@ -562,9 +536,11 @@ def _cut_links(ver, pre, results, solved, voxel, agree_voxels) -> tuple[list[fro
     def weakness(edge):
         r = by_pair.get(edge)
         if r is None:
-            return (0, 0, 0.0)
+            return (0, 0, 0, 0.0)
         w = solved.pair_weight.get((r.i, r.j), solved.pair_weight.get((r.j, r.i), 0.0))
-        return (int(r.stats.get("hypotheses_accepted", 1)), int(bool(r.stats.get("search"))), -w)
+        lost = any(ver[s].status != "verified" and ver[s].conflicting for s in edge)
+        hyp = int(r.stats.get("hypotheses_accepted", 1))
+        return (int(lost), hyp, int(bool(r.stats.get("search"))), -w)
 
     return conflict_cuts(graph, conflicts, weakness), graph
 

@@ -634,11 +634,24 @@ def test_a_view_seen_through_another_contradicts_it_without_shared_surface(synth
     to face the front sensor and moved 0.3 towards it shares no close match with the
     front view, yet lies in the space the front view saw through. At the true poses,
     neither test reads anything of note and there is no conflict."""
+    import copy
+
     from mvreg.globalstage.conflicts import free_space_conflicts
     from mvreg.globalstage.verify import ScanVerification
+    from mvreg.pairwise.view_projection import set_viewpoint
 
     pre, T_world_local = synthetic_pre
     names, acfg = [p.name for p in pre], AlignConfig()
+    # Uniform samples show no sensor grid: seen along their axes, a bound on the share
+    # does not apply. Give the two views sensors 20 radii out along their axes (nearly
+    # the same projection).
+    orthographic = pre
+    pre = copy.deepcopy(pre)
+    for p in (pre[0], pre[2]):
+        centre = p.fine_points.mean(0)
+        radius = float(np.sqrt(np.mean(np.sum((p.fine_points - centre) ** 2, axis=1))))
+        set_viewpoint(p, centre + 20.0 * radius * p.view_direction, p.normals)
+        p._cache.clear()
     truth = {0: T_world_local[0], 2: T_world_local[2]}
     v = ScanVerification(status="verified")
     assert free_space_conflicts(v, 2, [0], [], pre, truth, names, acfg) == []
@@ -656,3 +669,6 @@ def test_a_view_seen_through_another_contradicts_it_without_shared_surface(synth
     # Not gross below the bound, and then not a conflict with a scan outside the support
     loose = acfg.model_copy(update={"max_free_space_apart": 1.0})
     assert free_space_conflicts(v, 2, [0], [], pre, placed, names, loose) == []
+    # Nor between views without a sensor position
+    assert free_space_conflicts(v, 2, [0], [], orthographic, placed, names, acfg) == []
+    assert v.free_space_violation > acfg.max_free_space_apart

@@ -268,7 +268,6 @@ def search_alternatives(
     (:func:`mvreg.globalstage.model_search.distant_alternative`); mark those that have one
     ``undetermined`` (as good) or ``unverified`` (better). ``out``: {scan:
     ScanVerification}, changed in place; ``graph``: the agreeing pairs."""
-    names = [p.name for p in pre]
     scans = sorted(T_world_scan)
     verified = {s: T_world_scan[s] for s in scans if out[s].status == "verified"}
     turns = []
@@ -309,14 +308,8 @@ def search_alternatives(
                 moved, others = near.facing(moved, others), near.facing(others, moved)
             if len(others) < 2 or not moved:
                 continue
-            model = scan_model(pre, T_world_scan, others)
-            alt = distant_alternative(
-                moved, pre, T_world_scan, others, model, voxel, acfg, results=results,
-                turns=turns, max_refined=GROUP_CANDIDATES,
-            )  # fmt: skip
-            if alt is not None:
-                for s in group:
-                    _mark(out[s], alt, ", ".join(names[k] for k in group if k != s))
+            if _moved_as_one(out, group, moved, others, pre, T_world_scan, voxel, acfg,
+                             results, turns):  # fmt: skip
                 break
     _search_outnumbered(out, pre, T_world_scan, voxel, acfg, results, turns, near)
 
@@ -326,21 +319,30 @@ def _search_outnumbered(out, pre, T_world_scan, voxel, acfg, results, turns, nea
     these are more: a block that agrees with itself cannot confirm itself (quadknot dense
     seed 1: four scans closing cycles in a copy turned 120-180 deg, the six others each
     with a turned second pose). The smaller side is moved, as for a bridge."""
-    names = [p.name for p in pre]
     moved = [s for s in sorted(T_world_scan) if out[s].status == "verified"]
     others = [s for s in sorted(T_world_scan) if out[s].status == "undetermined"]
     if near is not None:
         moved, others = near.facing(moved, others), near.facing(others, moved)
     if not moved or len(others) < max(2, len(moved) + 1):
         return
+    _moved_as_one(out, moved, moved, others, pre, T_world_scan, voxel, acfg, results, turns)
+
+
+def _moved_as_one(out, group, moved, others, pre, T_world_scan, voxel, acfg, results, turns):
+    """Search the scans ``moved`` as one rigid body against the model of ``others``
+    (:func:`~mvreg.globalstage.model_search.distant_alternative`, ``GROUP_CANDIDATES``
+    motions); with a second pose, mark every scan of ``group``. Whether one was found."""
     model = scan_model(pre, T_world_scan, others)
     alt = distant_alternative(
         moved, pre, T_world_scan, others, model, voxel, acfg, results=results, turns=turns,
         max_refined=GROUP_CANDIDATES,
     )  # fmt: skip
-    if alt is not None:
-        for s in moved:
-            _mark(out[s], alt, ", ".join(names[k] for k in moved if k != s))
+    if alt is None:
+        return False
+    names = [p.name for p in pre]
+    for s in group:
+        _mark(out[s], alt, ", ".join(names[k] for k in group if k != s))
+    return True
 
 
 def _check_scan(s, pre, T_world_scan, graph, cycle, main, voxel, acfg, agree_voxels, others):

@@ -40,7 +40,6 @@ from mvreg.geometry import (
 from mvreg.globalstage.refine import overlapping_pairs
 from mvreg.globalstage.robust import robust_weights
 from mvreg.pairwise import PreprocessedScan
-from mvreg.pairwise.icp import nearest_with_normals
 
 JOINT_ICP_MAX_PARTNERS = 24
 """Each scan chooses at most this many partners (its largest overlaps) for the joint ICP,
@@ -103,20 +102,32 @@ def model_normals(points, normals, T_world_scan: dict, neighbours: int) -> list:
     return out
 
 
-def _pair_terms(pair, T, points, normals, trees, strides, max_dist, min_cos, centre):
-    i, j = pair
-    T_i_j = invert_transform(T[i]) @ T[j]
-    src = points[j][:: strides[j]]
-    nearest, _ = nearest_with_normals(
-        trees[i], points[i], normals[i], src, normals[j][:: strides[j]], T_i_j, max_dist, min_cos
-    )
-    ok = nearest >= 0
+def _scan_terms(group, T, points, normals, trees, strides, max_dist, min_cos, centre):
+    """The terms of every pair (i, j) of ``group`` = (i, [j, ...]): the sources of all of
+    scan i's partners matched in one KD-tree query (the same matches as one query per
+    pair, at a fraction of the calls: 200 scans of 400 points have 2,400 pairs)."""
+    i, js = group
+    T_i = invert_transform(T[i])
+    rel = [T_i @ T[j] for j in js]
+    src = [points[j][:: strides[j]] for j in js]
+    q = [transform_points(T_i_j, p) for T_i_j, p in zip(rel, src, strict=True)]
+    d, nn = trees[i].query(np.concatenate(q), distance_upper_bound=max_dist)
     T_c = T[i].copy()
     T_c[:3, 3] -= centre  # world frame shifted to the centre
-    b = transform_points(T_c @ T_i_j, src[ok])
-    a = transform_points(T_c, points[i][nearest[ok]])
-    n = normals[i][nearest[ok]] @ T[i][:3, :3].T
-    return _Terms(i, j, b, a, n, np.einsum("ij,ij->i", b - a, n))
+    out, start = [], 0
+    for j, T_i_j, p in zip(js, rel, src, strict=True):
+        dj, kj = d[start : start + len(p)], nn[start : start + len(p)]
+        start += len(p)
+        ok = np.flatnonzero(np.isfinite(dj))
+        k = kj[ok]
+        n_src = normals[j][:: strides[j]][ok] @ T_i_j[:3, :3].T
+        agree = np.einsum("ij,ij->i", normals[i][k], n_src) >= min_cos
+        ok, k = ok[agree], k[agree]
+        b = transform_points(T_c @ T_i_j, p[ok])
+        a = transform_points(T_c, points[i][k])
+        n = normals[i][k] @ T[i][:3, :3].T
+        out.append(_Terms(i, j, b, a, n, np.einsum("ij,ij->i", b - a, n)))
+    return out
 
 
 def _gauss_newton_step(terms, pair_w, c, col, radius) -> np.ndarray:
@@ -124,35 +135,48 @@ def _gauss_newton_step(terms, pair_w, c, col, radius) -> np.ndarray:
 
     Unknowns per scan in ``col``: (w * radius, v), a turn w about the centre and a shift v;
     a pair touches only its two scans' 6 x 6 blocks, so the system stays sparse for
-    thousands of scans.
+    thousands of scans. The Jacobian rows of all pairs are formed at once and each pair's
+    12 x 12 block by one product.
     """
     import scipy.sparse as sp
     from scipy.sparse.linalg import spsolve
 
     n = 6 * len(col)
-    g = np.zeros(n)
-    blocks: dict[tuple[int, int], np.ndarray] = {}
-    for t in terms:
-        wp = pair_w.get((t.i, t.j), 0.0)
-        if wp == 0.0:
-            continue
-        wt = wp / (1.0 + (t.r / c) ** 2)  # Cauchy weights times the pair's weight
-        # d r / d (w_j * radius, v_j) and d r / d (w_i * radius, v_i)
-        jb = np.hstack([cross3(t.b, t.n) / radius, t.n])
-        ja = -np.hstack([cross3(t.a, t.n) / radius, t.n])
-        sides = [(col[s], jac) for s, jac in ((t.j, jb), (t.i, ja)) if s in col]
-        for o1, j1 in sides:
-            g[o1 : o1 + 6] += j1.T @ (wt * t.r)
-            for o2, j2 in sides:
-                blk = (j1 * wt[:, None]).T @ j2
-                blocks[(o1, o2)] = blocks[(o1, o2)] + blk if (o1, o2) in blocks else blk
-    if not blocks:
+    live = [(t, w) for t in terms if (w := pair_w.get((t.i, t.j), 0.0)) != 0.0 and len(t.r)]
+    if not live:
         return np.zeros(n)
-    r6, c6 = np.meshgrid(np.arange(6), np.arange(6), indexing="ij")
-    rows = np.concatenate([o1 + r6.ravel() for o1, _ in blocks])
-    cols = np.concatenate([o2 + c6.ravel() for _, o2 in blocks])
-    vals = np.concatenate([b.ravel() for b in blocks.values()])
-    H = sp.csc_matrix((vals, (rows, cols)), shape=(n, n))
+    counts = np.array([len(t.r) for t, _ in live])
+    b, a, nrm, r = (np.concatenate([getattr(t, f) for t, _ in live]) for f in "banr")
+    # Cauchy weights times the pair's weight
+    wt = np.repeat([w for _, w in live], counts) / (1.0 + (r / c) ** 2)
+    # d r / d (w_j * radius, v_j) and d r / d (w_i * radius, v_i), side by side
+    jac = np.empty((len(r), 12))
+    jac[:, :3] = cross3(b, nrm) / radius
+    jac[:, 3:6] = nrm
+    jac[:, 6:9] = -cross3(a, nrm) / radius
+    jac[:, 9:] = -nrm
+    wjac = jac * wt[:, None]
+    ends = np.cumsum(counts)
+    blocks = np.empty((len(live), 12, 12))
+    grads = np.empty((len(live), 12))
+    for k, (e, m) in enumerate(zip(ends, counts, strict=True)):
+        blocks[k] = wjac[e - m : e].T @ jac[e - m : e]
+        grads[k] = wjac[e - m : e].T @ r[e - m : e]
+    six = np.arange(6)
+    idx = np.array(
+        [
+            np.concatenate([col[t.j] + six if t.j in col else -1 - six,
+                            col[t.i] + six if t.i in col else -1 - six])
+            for t, _ in live
+        ]
+    )  # fmt: skip
+    g = np.zeros(n)
+    ok = idx >= 0
+    np.add.at(g, idx[ok], grads[ok])
+    both = ok[:, :, None] & ok[:, None, :]
+    rows = np.broadcast_to(idx[:, :, None], blocks.shape)[both]
+    cols = np.broadcast_to(idx[:, None, :], blocks.shape)[both]
+    H = sp.csc_matrix((blocks[both], (rows, cols)), shape=(n, n))
     # A direction no pair constrains (a scan held only by a plane) gets a zero step.
     damping = 1e-9 * float(H.diagonal().sum()) / n + 1e-300
     return spsolve(H + damping * sp.identity(n, format="csc"), -g)
@@ -201,12 +225,19 @@ def joint_icp(
     centre = np.mean([w.mean(0) for w in world0.values()], axis=0)
     radius = max(float(np.max(np.linalg.norm(w - centre, axis=1))) for w in world0.values())
 
+    groups: dict[int, list[int]] = {}
+    for i, j in cand:
+        groups.setdefault(i, []).append(j)
+    order = {p: k for k, p in enumerate(cand)}
+
     def terms_with(level):
         def terms_of(T):
-            def one(p):
-                return _pair_terms(p, T, *level, strides, max_dist, min_normal_cos, centre)
+            def one(g):
+                return _scan_terms(g, T, *level, strides, max_dist, min_normal_cos, centre)
 
-            return [t for t in executor.map(one, cand) if len(t.r) >= cfg.min_correspondences]
+            terms = [t for ts in executor.map(one, list(groups.items())) for t in ts]
+            terms.sort(key=lambda t: order[(t.i, t.j)])  # the pairs' order, as before
+            return [t for t in terms if len(t.r) >= cfg.min_correspondences]
 
         return terms_of
 

@@ -27,7 +27,7 @@ from mvreg.globalstage.robust import robust_weights
 from mvreg.globalstage.scan_model import cell_sharing
 from mvreg.globalstage.solve import GlobalSolution, TrackSolver, max_translation_change
 from mvreg.pairwise import PreprocessedScan, mutual_correspondences, resample
-from mvreg.pairwise.icp import icp_point_to_plane
+from mvreg.pairwise.icp import icp_point_to_plane, icp_point_to_plane_many
 from mvreg.pairwise.tracks import tracks_from_correspondences
 
 MAX_PARTNERS = 12
@@ -110,24 +110,47 @@ def pair_icp(pts_i, nrm_i, tree_i, pts_j, nrm_j, T_i_j, max_dist, min_cos, max_s
     stride = max(1, int(np.ceil(len(pts_j) / max_source)))
     src, src_n = pts_j[::stride], nrm_j[::stride]
     T = icp_point_to_plane(src, src_n, pts_i, nrm_i, tree_i, T_i_j, max_dist, 30, min_cos)
-    moved = np.linalg.norm(transform_points(T, src) - transform_points(T_i_j, src), axis=1)
-    return T if float(np.max(moved, initial=0.0)) <= 3.0 * max_dist else None
+    return T if _kept(T, T_i_j, src, max_dist) else None
 
 
-def match_pair(pair, sol, points, normals, trees, max_dist, cfg: RefineConfig, tc: TracksConfig):
-    """One pair of a refinement round: (pair, (idx_i, idx_j), distances under the global
-    poses), or None when the pair has too few correspondences. The correspondences are
-    the mutual nearest neighbours under the pair's ICP-refined pose (pairwise-icp) or under
-    the global poses (nearest, or when ICP runs away)."""
-    i, j = pair
-    T_i_j = invert_transform(sol.T_world_scan[i]) @ sol.T_world_scan[j]
-    T_match = None
+def match_scan(group, sol, points, normals, trees, max_dist, cfg: RefineConfig, tc: TracksConfig):
+    """Every pair (i, j) of ``group`` = (i, [j, ...]) of a refinement round, in that order:
+    (pair, (idx_i, idx_j), distances under the global poses), or None when the pair has
+    too few correspondences. The correspondences are the mutual nearest neighbours under
+    the pair's ICP-refined pose (pairwise-icp: :func:`pair_icp`'s, the ICPs onto scan i run
+    together by :func:`icp_point_to_plane_many`) or under the global poses (nearest, or
+    when ICP runs away)."""
+    i, js = group
+    T_i = invert_transform(sol.T_world_scan[i])
+    rel = [T_i @ sol.T_world_scan[j] for j in js]
+    T_match = list(rel)
     if cfg.correspondences == "pairwise-icp":
-        T_match = pair_icp(
-            points[i], normals[i], trees[i], points[j], normals[j], T_i_j, max_dist,
-            tc.min_normal_cos, max_source=cfg.icp_points,
+        strides = [max(1, int(np.ceil(len(points[j]) / cfg.icp_points))) for j in js]
+        src = [(points[j][::k], normals[j][::k]) for j, k in zip(js, strides, strict=True)]
+        found = icp_point_to_plane_many(
+            [(p, n, T) for (p, n), T in zip(src, rel, strict=True)],
+            points[i], normals[i], trees[i], max_dist, 30, tc.min_normal_cos,
         )  # fmt: skip
-    T_match = T_i_j if T_match is None else T_match
+        for k, ((p, _), T0, T) in enumerate(zip(src, rel, found, strict=True)):
+            if _kept(T, T0, p, max_dist):
+                T_match[k] = T
+    return [
+        _matched(i, j, T_i_j, T_m, points, normals, trees, max_dist, cfg, tc)
+        for j, T_i_j, T_m in zip(js, rel, T_match, strict=True)
+    ]
+
+
+def _kept(T, T0, src, max_dist) -> bool:
+    """A pair ICP's result is kept unless it moves some point of the source by more than
+    ``3 * max_dist`` from the start (drifting along a direction the overlap does not
+    constrain, or into another fit)."""
+    moved = np.linalg.norm(transform_points(T, src) - transform_points(T0, src), axis=1)
+    return float(np.max(moved, initial=0.0)) <= 3.0 * max_dist
+
+
+def _matched(i, j, T_i_j, T_match, points, normals, trees, max_dist, cfg, tc):
+    """The mutual correspondences of (i, j) under ``T_match``, their distances under the
+    global poses ``T_i_j``; None below ``cfg.min_correspondences``."""
     idx_i, idx_j = mutual_correspondences(
         points[i],
         points[j],
@@ -195,10 +218,19 @@ def refine_rounds(
                 }
             )
         match = partial(
-            match_pair, sol=sol, points=points, normals=normals, trees=trees,
+            match_scan, sol=sol, points=points, normals=normals, trees=trees,
             max_dist=dist_v * voxel, cfg=round_cfg, tc=tracks_cfg,
         )  # fmt: skip
-        matched = [m for m in executor.map(match, candidates) if m is not None]
+        groups: dict[int, list[int]] = {}
+        for i, j in candidates:
+            groups.setdefault(i, []).append(j)
+        items = list(groups.items())
+        by_pair = {
+            (i, j): m
+            for (i, js), ms in zip(items, executor.map(match, items), strict=True)
+            for j, m in zip(js, ms, strict=True)
+        }
+        matched = [m for p in candidates if (m := by_pair[p]) is not None]
         if not matched:
             break
         used = [m[0] for m in matched]

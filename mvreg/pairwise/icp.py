@@ -58,41 +58,91 @@ def icp_point_to_plane(
     each pull to the other's pose make a 2-cycle, which further steps only repeat.
     Returns the refined (4, 4) ``T_target_source``.
     """
-    T = np.array(T_target_source, dtype=np.float64)
-    extent = float(np.max(np.linalg.norm(source - source.mean(0), axis=1))) + 1e-300
-    centroid = source.mean(0)
-
-    def distance(Ta, Tb):  # how far the two poses put the source points apart (about)
-        turn = norm2(Ta[:3, :3] - Tb[:3, :3]) / np.sqrt(2.0)
-        return turn * extent + norm2((Ta[:3, :3] - Tb[:3, :3]) @ centroid + Ta[:3, 3] - Tb[:3, 3])
-
-    before, previous = None, T  # the poses two steps and one step back
+    run = _IcpRun(source, source_normals, T_target_source, tolerance * max_dist)
     for _ in range(max_iterations):
-        q = transform_points(T, source)
+        q = transform_points(run.T, source)
         d, nn = target_tree.query(q, distance_upper_bound=max_dist)
+        run.step(q, d, nn, target, target_normals, min_normal_cos, max_residual)
+        if run.done:
+            break
+    return run.T
+
+
+def icp_point_to_plane_many(
+    sources: Sequence[tuple[np.ndarray, np.ndarray, np.ndarray]],
+    target: np.ndarray,
+    target_normals: np.ndarray,
+    target_tree: cKDTree,
+    max_dist: float,
+    max_iterations: int = 30,
+    min_normal_cos: float = 0.5,
+    tolerance: float = 5e-3,
+) -> list[np.ndarray]:
+    """:func:`icp_point_to_plane` of several scans onto one target, the same poses as one
+    call each: ``sources`` holds (points, normals, start ``T_target_source``) per scan. The
+    scans still moving share one KD-tree query per iteration (a refinement round matches a
+    scan with up to a dozen partners; on scans of a few hundred points the calls, not the
+    queries, were the cost)."""
+    runs = [_IcpRun(p, n, T, tolerance * max_dist) for p, n, T in sources]
+    for _ in range(max_iterations):
+        live = [(r, p) for r, (p, _, _) in zip(runs, sources, strict=True) if not r.done]
+        if not live:
+            break
+        q = [transform_points(r.T, p) for r, p in live]
+        d, nn = target_tree.query(np.concatenate(q), distance_upper_bound=max_dist)
+        start = 0
+        for (r, _), qk in zip(live, q, strict=True):
+            end = start + len(qk)
+            r.step(qk, d[start:end], nn[start:end], target, target_normals, min_normal_cos)
+            start = end
+    return [r.T for r in runs]
+
+
+class _IcpRun:
+    """One ICP's state between iterations: the pose, the two before it, done or not."""
+
+    def __init__(self, source, source_normals, T_target_source, stop: float):
+        self.source_normals = source_normals
+        self.T = np.array(T_target_source, dtype=np.float64)
+        self.extent = float(np.max(np.linalg.norm(source - source.mean(0), axis=1))) + 1e-300
+        self.centroid = source.mean(0)
+        self.stop = stop  # tolerance * max_dist
+        self.before, self.previous = None, self.T  # the poses two steps and one step back
+        self.done = False
+
+    def distance(self, Ta, Tb) -> float:  # how far two poses put the source points apart
+        turn = norm2(Ta[:3, :3] - Tb[:3, :3]) / np.sqrt(2.0)
+        dR = Ta[:3, :3] - Tb[:3, :3]
+        return turn * self.extent + norm2(dR @ self.centroid + Ta[:3, 3] - Tb[:3, 3])
+
+    def step(self, q, d, nn, target, target_normals, min_normal_cos, max_residual=None):
+        """One Gauss-Newton step from the matches (``d``, ``nn``) of the moved source ``q``."""
+        T = self.T
         ok = np.flatnonzero(np.isfinite(d))
         if len(ok) < 6:
-            break
+            self.done = True
+            return
         n = target_normals[nn[ok]]
-        agree = np.einsum("ij,ij->i", n, source_normals[ok] @ T[:3, :3].T) >= min_normal_cos
+        agree = np.einsum("ij,ij->i", n, self.source_normals[ok] @ T[:3, :3].T) >= min_normal_cos
         ok, n = ok[agree], n[agree]
         if max_residual is not None:
             near = np.abs(np.einsum("ij,ij->i", q[ok] - target[nn[ok]], n)) <= max_residual
             ok, n = ok[near], n[near]
         if len(ok) < 6:
-            break
+            self.done = True
+            return
         x = _plane_step(q[ok], target[nn[ok]], n)
         if x is None:
-            break
+            self.done = True
+            return
         step = np.eye(4)
         step[:3, :3] = rotation_from_vector(x[:3])
         step[:3, 3] = x[3:]
-        before, previous, T = previous, T, step @ T
-        if norm2(x[:3]) * extent + norm2(x[3:]) < tolerance * max_dist:
-            break
-        if before is not None and distance(T, before) < tolerance * max_dist:
-            break
-    return T
+        self.before, self.previous, self.T = self.previous, T, step @ T
+        if norm2(x[:3]) * self.extent + norm2(x[3:]) < self.stop:
+            self.done = True
+        elif self.before is not None and self.distance(self.T, self.before) < self.stop:
+            self.done = True
 
 
 def icp_trimmed(

@@ -27,7 +27,7 @@ from mvreg.globalstage.robust import robust_weights
 from mvreg.globalstage.scan_model import cell_sharing
 from mvreg.globalstage.solve import GlobalSolution, TrackSolver, max_translation_change
 from mvreg.pairwise import PreprocessedScan, mutual_correspondences, resample
-from mvreg.pairwise.icp import icp_point_to_plane, icp_point_to_plane_many
+from mvreg.pairwise.icp import icp_point_to_plane_many
 from mvreg.pairwise.tracks import tracks_from_correspondences
 
 MAX_PARTNERS = 12
@@ -107,33 +107,39 @@ def pair_icp(pts_i, nrm_i, tree_i, pts_j, nrm_j, T_i_j, max_dist, min_cos, max_s
     None when the result moves some point of scan j by more than ``3 * max_dist`` (ICP
     drifting along a direction the overlap does not constrain, or into another fit).
     """
-    stride = max(1, int(np.ceil(len(pts_j) / max_source)))
-    src, src_n = pts_j[::stride], nrm_j[::stride]
-    T = icp_point_to_plane(src, src_n, pts_i, nrm_i, tree_i, T_i_j, max_dist, 30, min_cos)
-    return T if _kept(T, T_i_j, src, max_dist) else None
+    return pair_icps(pts_i, nrm_i, tree_i, [(pts_j, nrm_j, T_i_j)], max_dist, min_cos,
+                     max_source)[0]  # fmt: skip
+
+
+def pair_icps(pts_i, nrm_i, tree_i, sources, max_dist, min_cos, max_source=3000) -> list:
+    """:func:`pair_icp` of every (points, normals, ``T_i_j``) of ``sources`` onto scan i,
+    run together (:func:`icp_point_to_plane_many`: the same poses as one at a time)."""
+    src = []
+    for pts_j, nrm_j, T_i_j in sources:
+        stride = max(1, int(np.ceil(len(pts_j) / max_source)))
+        src.append((pts_j[::stride], nrm_j[::stride], T_i_j))
+    found = icp_point_to_plane_many(src, pts_i, nrm_i, tree_i, max_dist, 30, min_cos)
+    kept = [_kept(T, T0, p, max_dist) for (p, _, T0), T in zip(src, found, strict=True)]
+    return [T if ok else None for T, ok in zip(found, kept, strict=True)]
 
 
 def match_scan(group, sol, points, normals, trees, max_dist, cfg: RefineConfig, tc: TracksConfig):
     """Every pair (i, j) of ``group`` = (i, [j, ...]) of a refinement round, in that order:
     (pair, (idx_i, idx_j), distances under the global poses), or None when the pair has
     too few correspondences. The correspondences are the mutual nearest neighbours under
-    the pair's ICP-refined pose (pairwise-icp: :func:`pair_icp`'s, the ICPs onto scan i run
-    together by :func:`icp_point_to_plane_many`) or under the global poses (nearest, or
-    when ICP runs away)."""
+    the pair's ICP-refined pose (pairwise-icp: :func:`pair_icps`, the ICPs onto scan i run
+    together) or under the global poses (nearest, or when ICP runs away)."""
     i, js = group
     T_i = invert_transform(sol.T_world_scan[i])
     rel = [T_i @ sol.T_world_scan[j] for j in js]
     T_match = list(rel)
     if cfg.correspondences == "pairwise-icp":
-        strides = [max(1, int(np.ceil(len(points[j]) / cfg.icp_points))) for j in js]
-        src = [(points[j][::k], normals[j][::k]) for j, k in zip(js, strides, strict=True)]
-        found = icp_point_to_plane_many(
-            [(p, n, T) for (p, n), T in zip(src, rel, strict=True)],
-            points[i], normals[i], trees[i], max_dist, 30, tc.min_normal_cos,
+        found = pair_icps(
+            points[i], normals[i], trees[i],
+            [(points[j], normals[j], T) for j, T in zip(js, rel, strict=True)],
+            max_dist, tc.min_normal_cos, max_source=cfg.icp_points,
         )  # fmt: skip
-        for k, ((p, _), T0, T) in enumerate(zip(src, rel, found, strict=True)):
-            if _kept(T, T0, p, max_dist):
-                T_match[k] = T
+        T_match = [T0 if T is None else T for T0, T in zip(rel, found, strict=True)]
     return [
         _matched(i, j, T_i_j, T_m, points, normals, trees, max_dist, cfg, tc)
         for j, T_i_j, T_m in zip(js, rel, T_match, strict=True)

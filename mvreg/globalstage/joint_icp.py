@@ -50,9 +50,16 @@ every overlapping pair 0.069; 80 scans: 24 partners 0.074, 32 partners 0.072, ev
 0.077)."""
 
 NEIGHBOURS = 30
-"""Neighbours of a point in the union of the scans its normal comes from
+"""Fewest neighbours of a point in the union of the scans its normal comes from
 (:func:`model_normals`); Open3D's estimate for one scan takes at most as many
 (``preprocess.normal_max_neighbours``)."""
+
+MAX_NEIGHBOURS = 150
+"""Most neighbours :func:`model_normals` takes to reach its radius in a dense union."""
+
+NORMAL_REACH = 1.5
+"""The neighbourhood of a model normal reaches at least this many joint ICP correspondence
+distances (:func:`neighbours_for`)."""
 
 
 @dataclass
@@ -67,29 +74,57 @@ class _Terms:
     r: np.ndarray  # (n,) signed point-to-plane residuals
 
 
-def model_normals(points, normals, T_world_scan: dict, neighbours: int) -> list:
+def neighbours_for(world: np.ndarray, radius: float, sample: int = 2000) -> int:
+    """How many nearest points of the union ``world`` reach ``radius``: :data:`NEIGHBOURS`
+    scaled by the area (radius / the median distance to the NEIGHBOURS-th neighbour over
+    up to ``sample`` evenly strided points) squared, between NEIGHBOURS and
+    :data:`MAX_NEIGHBOURS`.
+
+    Why a reach, not a count: the normals are estimated at poses still off by up to a
+    correspondence distance, so where one scan's sheet lies offset from the others', a
+    neighbourhood smaller than the offset tilts the normals into agreeing with it and the
+    joint ICP stops there (fandisk dense seed 0: 30 neighbours of the dense union reach
+    0.48 voxels; one view slid 0.53 voxels along a weakly held direction stayed 0.49
+    voxels off, while point-to-plane ICP against the others alone takes it to 0.02; 73
+    neighbours, 0.75 voxels: 0.07). A sparse union (3,000-point views) already reaches
+    it with NEIGHBOURS."""
+    from scipy.spatial import cKDTree
+
+    if len(world) <= MAX_NEIGHBOURS:
+        return min(NEIGHBOURS, max(3, len(world) - 1))
+    probe = world[:: max(1, len(world) // sample)]
+    d, _ = cKDTree(world).query(probe, [NEIGHBOURS + 1], workers=-1)
+    reach = float(np.median(d[:, 0]))
+    if not reach > 0.0:
+        return NEIGHBOURS
+    return int(np.clip(np.ceil(NEIGHBOURS * (radius / reach) ** 2), NEIGHBOURS, MAX_NEIGHBOURS))
+
+
+def model_normals(points, normals, T_world_scan: dict, radius: float) -> list:
     """Each registered scan's normals re-estimated on the union of the registered scans.
 
     ``points``/``normals``: per scan, in its frame (the level the joint ICP matches);
     ``T_world_scan``: the poses to merge them at. The normal of a point is the direction of
-    least spread of its ``neighbours`` nearest points of the union (Open3D), turned back into
-    the scan's frame with the sign of its own normal. Where views overlap, the union is
-    several times denser than one scan: a sparse view (3,000 points) holds ~4 of its own
-    points within the normal radius of the dense level, and normals of so few noisy points
-    bias point-to-plane residuals (idler_riser sparse seed 0: the joint ICP took the worst
-    scan from 0.17 to 0.74 deg with the scans' own normals, to 0.17 with these; from the
-    true poses, sparse busted and spot views drift 0.40-0.45 and 0.14-0.17 deg with their
-    own normals, 0.10-0.11 and 0.03-0.06 with these). Dense views are unchanged (fandisk
-    and cow, 20,000 points: 0.03-0.05 deg either way). Cost: one KNN normal estimate over
-    all registered points (0.5 s for 10 views of 10,000 points, 2 s for 80; :func:`joint_icp`
-    calls it once or twice). Scans without a pose keep theirs. Measurements:
+    least spread of its nearest points of the union (Open3D; as many as reach ``radius``:
+    :func:`neighbours_for`), turned back into the scan's frame with the sign of its own
+    normal. Where views overlap, the union is several times denser than one scan: a sparse
+    view (3,000 points) holds ~4 of its own points within the normal radius of the dense
+    level, and normals of so few noisy points bias point-to-plane residuals (idler_riser
+    sparse seed 0: the joint ICP took the worst scan from 0.17 to 0.74 deg with the scans'
+    own normals, to 0.17 with these; from the true poses, sparse busted and spot views drift
+    0.40-0.45 and 0.14-0.17 deg with their own normals, 0.10-0.11 and 0.03-0.06 with these).
+    Dense views are unchanged (fandisk and cow, 20,000 points: 0.03-0.05 deg either way).
+    Cost: one KNN normal estimate over all registered points (0.5 s for 10 views of 10,000
+    points, 2 s for 80; :func:`joint_icp` calls it once or twice). Scans without a pose keep
+    theirs. Measurements:
     docs/design/globalstage.md."""
     import open3d as o3d
 
     scans = sorted(T_world_scan)
     world = [transform_points(T_world_scan[s], points[s]) for s in scans]
-    pcd = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(np.concatenate(world)))
-    pcd.estimate_normals(o3d.geometry.KDTreeSearchParamKNN(neighbours))
+    union = np.concatenate(world)
+    pcd = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(union))
+    pcd.estimate_normals(o3d.geometry.KDTreeSearchParamKNN(neighbours_for(union, radius)))
     merged = np.asarray(pcd.normals)
     out = list(normals)
     start = 0
@@ -243,7 +278,7 @@ def joint_icp(
 
     own = levels[1]
     if cfg.joint_icp_model_normals:  # normals from the union, at the start poses
-        levels = (levels[0], model_normals(levels[0], own, T0, NEIGHBOURS), levels[2])
+        levels = (levels[0], model_normals(levels[0], own, T0, NORMAL_REACH * max_dist), levels[2])
     T, log, final = _iterate(T0, scans, terms_with(levels), cfg, robust, voxel, centre, radius)
     # Once more from the union so aligned, unless the first pass moved every point by less
     # than the scans' noise: the union it estimated the normals on was then already aligned
@@ -252,7 +287,7 @@ def joint_icp(
     noise = float(np.median([pre[s].noise for s in scans]))
     log["iterations_model_normals"] = 0
     if cfg.joint_icp_model_normals and final and _max_move(T, T0, world0) > noise:
-        levels = (levels[0], model_normals(levels[0], own, T, NEIGHBOURS), levels[2])
+        levels = (levels[0], model_normals(levels[0], own, T, NORMAL_REACH * max_dist), levels[2])
         T, again, final = _iterate(T, scans, terms_with(levels), cfg, robust, voxel, centre, radius)
         log["iterations_model_normals"] = again["iterations"]
     log["residual_median_end"] = (

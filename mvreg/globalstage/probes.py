@@ -12,7 +12,9 @@
 * :func:`relative_residual_outliers`: the verified scans that fit the others clearly worse
   than the other verified scans do (the pairs' relative residual rule, scan by scan);
 * :func:`resting_on_undetermined`: the verified scans whose pairs link them only to
-  undetermined scans.
+  undetermined scans;
+* :func:`outnumbered_by_turns`: every verified scan, when more scans have a turned second
+  pose as good than scans are verified.
 
 Pure functions on world points, normals and a
 :class:`~mvreg.globalstage.scan_model.ScanModel`; thresholds from the data (feature
@@ -235,6 +237,38 @@ def resting_on_undetermined(out: dict, graph: dict, names) -> list[int]:
         v, partners = out[s], ", ".join(names[k] for k in sorted(graph[s]))
         v.status, v.evidence, v.degenerate_dof = "undetermined", "", f"that of {partners}"
         v.reason = f"its pairs link it only to scans whose pose is undetermined ({partners})"
+    return marked
+
+
+def outnumbered_by_turns(out: dict) -> list[int]:
+    """Mark ``undetermined`` every verified scan when more scans have a distant second pose
+    that fits as well (``degenerate_dof`` "a discrete turn ...":
+    :func:`mvreg.globalstage.verify.search_alternatives`) than scans are verified.
+
+    Most views then show the object near-symmetric, and on a near-symmetric object a pair's
+    hypotheses come one per copy: a cycle closes on any choice of copies (for an exact
+    symmetry, any choice per scan closes every cycle), so a cycle among the minority does
+    not tell which copy each of its scans took, and the model of the others, made mostly of
+    scans whose copy is open, cannot either (quadknot dense seed 2: three scans verified by
+    their triangle of pairs, 60-180 deg off each other, among seven with a turned second
+    pose). Returns the scans marked, in order."""
+    turned = [
+        s
+        for s, v in out.items()
+        if v.status == "undetermined" and (v.degenerate_dof or "").startswith("a discrete turn")
+    ]
+    marked = sorted(s for s, v in out.items() if v.status == "verified")
+    if not marked or len(turned) <= len(marked):
+        return []
+    for s in marked:
+        v = out[s]
+        v.status, v.evidence = "undetermined", ""
+        v.degenerate_dof = "which copy of a near-symmetric object it lies on"
+        v.reason = (
+            f"{len(turned)} of the {len(out)} scans have a second pose as good, turned "
+            f"(only {len(marked)} verified): the object is near-symmetric as seen, and the "
+            "pairs that verify this scan may all have taken the same turned copy"
+        )
     return marked
 
 

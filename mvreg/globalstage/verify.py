@@ -101,6 +101,7 @@ from mvreg.globalstage.model_search import (
 from mvreg.globalstage.probes import (
     degenerate_direction,
     on_one_plane,
+    outnumbered_by_turns,
     relative_residual_outliers,
     resting_on_undetermined,
     unsettled,
@@ -312,6 +313,7 @@ def search_alternatives(
                              results, turns):  # fmt: skip
                 break
     _search_outnumbered(out, pre, T_world_scan, voxel, acfg, results, turns, near)
+    outnumbered_by_turns(out)
 
 
 def _search_outnumbered(out, pre, T_world_scan, voxel, acfg, results, turns, near) -> None:

@@ -237,6 +237,36 @@ def test_a_scan_linked_only_to_undetermined_scans_is_undetermined():
     assert "undetermined (scan_1, scan_4)" in out[0].reason
 
 
+def test_verified_scans_outnumbered_by_turned_ones_are_undetermined():
+    """Four of seven scans with a turned second pose as good against three verified by a
+    cycle: the three become undetermined (the object is near-symmetric as seen, and a cycle
+    closes on any choice of copies). As many turned as verified, or scans left open by a
+    continuous degree of freedom, change nothing."""
+    from mvreg.globalstage.probes import outnumbered_by_turns
+    from mvreg.globalstage.verify import ScanVerification
+
+    def statuses(turned: int, sliding: int = 0) -> dict:
+        out = {s: ScanVerification(status="verified", evidence="cycle") for s in range(3)}
+        for k in range(turned):
+            out[3 + k] = ScanVerification(
+                status="undetermined", degenerate_dof="a discrete turn of 120 deg"
+            )
+        for k in range(sliding):
+            out[3 + turned + k] = ScanVerification(
+                status="undetermined", degenerate_dof="translation along (1.000, 0.000, 0.000)"
+            )
+        return out
+
+    out = statuses(4)
+    assert outnumbered_by_turns(out) == [0, 1, 2]
+    assert all(v.status == "undetermined" for v in out.values())
+    assert out[0].evidence == "" and "near-symmetric" in out[0].reason
+    assert "4 of the 7 scans" in out[0].reason and "copy" in out[0].degenerate_dof
+    for kept in (statuses(3), statuses(2, sliding=5)):
+        assert outnumbered_by_turns(kept) == []
+        assert [kept[s].status for s in range(3)] == ["verified"] * 3
+
+
 def test_final_statuses_leave_no_scan_verified_by_partners_that_are_not():
     """On the statuses a run ends with: scans confirmed only through undetermined scans
     become undetermined, and that propagates (2 rests on 1, 1 on 0); a cycle whose

@@ -12,7 +12,13 @@ from scipy.spatial.transform import Rotation
 from mvreg.config import load_config
 from mvreg.executor import ThreadExecutor
 from mvreg.globalstage import joint_icp as joint_icp_module
-from mvreg.globalstage.joint_icp import MAX_NEIGHBOURS, NEIGHBOURS, joint_icp, neighbours_for
+from mvreg.globalstage.joint_icp import (
+    MAX_NEIGHBOURS,
+    NEIGHBOURS,
+    joint_icp,
+    neighbours_for,
+    union_normals,
+)
 from mvreg.globalstage.refine import dense_levels
 from mvreg.globalstage.solve import GlobalSolution
 from mvreg.metrics import pose_errors
@@ -130,6 +136,30 @@ def test_normal_neighbourhoods_reach_the_radius_in_a_dense_union_only():
     assert neighbours_for(plane, 2 * h) == NEIGHBOURS
     assert neighbours_for(plane, 100 * h) == MAX_NEIGHBOURS
     assert neighbours_for(plane[:50], 6 * h) == NEIGHBOURS
+
+
+def test_union_normals_take_the_reach_of_a_wide_neighbourhood_from_a_sample():
+    """A noisy unit sphere (60,000 points, noise 0.004): normals of the 30 nearest points are
+    off the true ones by a median 2.4 deg; a neighbourhood of 120 taken from every fourth
+    point by 1.2 deg (120 nearest of all points: 0.64 deg, at four times the cost). Up to
+    NEIGHBOURS the estimate is Open3D's own."""
+    import open3d as o3d
+
+    rng = np.random.default_rng(0)
+    true = rng.normal(size=(60000, 3))
+    true /= np.linalg.norm(true, axis=1, keepdims=True)
+    pts = true + rng.normal(0.0, 0.004, true.shape)
+
+    def error(n):
+        return np.median(np.degrees(np.arccos(np.clip(np.abs(np.sum(n * true, 1)), 0, 1))))
+
+    pcd = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(pts))
+    pcd.estimate_normals(o3d.geometry.KDTreeSearchParamKNN(NEIGHBOURS))
+    own = np.asarray(pcd.normals)
+    assert np.array_equal(union_normals(pts, NEIGHBOURS), own)
+    wide = union_normals(pts, 4 * NEIGHBOURS)
+    assert np.allclose(np.linalg.norm(wide, axis=1), 1.0)
+    assert error(wide) < 0.6 * error(own), (error(wide), error(own))
 
 
 def test_joint_icp_keeps_the_start_when_it_would_move_too_far(fandisk):

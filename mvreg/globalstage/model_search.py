@@ -332,10 +332,15 @@ def _search(group, pre, T_world_scan, others, model, voxel, acfg, far_voxels, ma
         M = refined(M)
         if M is None:
             continue
-        found = full.confirm(M, fit(M), base, len(src))
-        if found is None:
+        overlap, ratio = fit(M)
+        if not fits_as_well(overlap, ratio, base[0], base[1], base[0] * len(src), acfg):
             continue
-        M, (overlap, ratio), ref, n = found
+        n, ref = len(src), base
+        if full.n > len(src):  # weighed again on more points (_FullFit)
+            M, (overlap, ratio), ref = full.weigh(M)
+            n = full.n
+            if M is None or not fits_as_well(overlap, ratio, ref[0], ref[1], ref[0] * n, acfg):
+                continue
         if view_conflict(group, pre, T_world_scan, others, M, acfg, views) is not None:
             continue
         better = overlap > ref[0] + overlap_spread(ref[0], n) and ratio <= ref[1]
@@ -366,20 +371,6 @@ class _FullFit:
         pts, nrm = transform_points(M, self.pts), self.nrm @ M[:3, :3].T
         overlap, ratio, *_ = model_fit(self.model, pts, nrm, self.noise, self.voxel, self.acfg)
         return overlap, ratio
-
-    def confirm(self, M, fitted, base, n):
-        """(M, its (overlap, residual ratio), the current placement's, the points they were
-        measured on) when M fits as well as the current placement on the sample (``fitted``
-        against ``base``, ``n`` points) and, where this has more points, on these too
-        (M refined on them); else None."""
-        if not fits_as_well(fitted[0], fitted[1], base[0], base[1], base[0] * n, self.acfg):
-            return None
-        if self.n <= n:
-            return M, fitted, base, n
-        M, fitted, base = self.weigh(M)
-        if M is None or not fits_as_well(*fitted, *base, base[0] * self.n, self.acfg):
-            return None
-        return M, fitted, base, self.n
 
     def weigh(self, M):
         """(M refined on the points, or None where it came back to the current placement;

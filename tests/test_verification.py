@@ -267,31 +267,6 @@ def test_verified_scans_outnumbered_by_turned_ones_are_undetermined():
         assert [kept[s].status for s in range(3)] == ["verified"] * 3
 
 
-def test_a_turned_second_pose_that_fits_better_counts_among_the_turns():
-    """ADIS16480 sparse seed 1: three scans verified (by one pair each, or the model), three
-    with a turned second pose as good, one unverified because a turned pose fits better;
-    two of the three verified were 180 deg off. The better one counts too (4 against 3),
-    so the three are undetermined; a scan unverified for another reason does not count."""
-    from mvreg.globalstage.probes import outnumbered_by_turns
-    from mvreg.globalstage.verify import ScanVerification
-
-    def statuses(better_turn: float | None) -> dict:
-        out = {s: ScanVerification(status="verified", evidence="model") for s in range(3)}
-        for s in (3, 4, 5):
-            out[s] = ScanVerification(
-                status="undetermined", degenerate_dof="a discrete turn of 90 deg"
-            )
-        out[6] = ScanVerification(status="unverified", better_turn_deg=better_turn)
-        return out
-
-    out = statuses(90.0)
-    assert outnumbered_by_turns(out) == [0, 1, 2]
-    assert "4 of the 7 scans" in out[0].reason
-    kept = statuses(None)  # unverified, but not by a second pose
-    assert outnumbered_by_turns(kept) == []
-    assert [kept[s].status for s in range(3)] == ["verified"] * 3
-
-
 def test_final_statuses_leave_no_scan_verified_by_partners_that_are_not():
     """On the statuses a run ends with: scans confirmed only through undetermined scans
     become undetermined, and that propagates (2 rests on 1, 1 on 0); a cycle whose

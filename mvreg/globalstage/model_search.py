@@ -24,10 +24,8 @@ Contract (pure functions on preprocessed scans and poses; no I/O):
   bring the most of it onto the model (at least half as much as the current placement),
   and the pose hypotheses of the source's own pairs with the others (:func:`pair_poses`);
   it returns the first that fits the model as well as the current placement
-  (:func:`fits_as_well`) or better, on the search's sample and again on up to
-  :data:`DECIDE_POINTS` points of the source (:class:`_FullFit`), and that no other
-  scan's view contradicts more than the current placement (:func:`view_conflict`: both
-  free-space tests), or None.
+  (:func:`fits_as_well`) or better and that no other scan's view contradicts more than
+  the current placement (:func:`view_conflict`: both free-space tests), or None.
 
 Every threshold is the pairwise acceptance rule's (``AlignConfig``) or in feature voxels;
 none is fitted to an object.
@@ -56,10 +54,6 @@ from mvreg.pairwise.scoring import free_space_violation, unseen_violation
 # about the body's axis bring 0.80-0.84 of them onto the others, the true place 0.58
 # (11th of 14).
 GROUP_CANDIDATES = 16
-
-# Source points on which a second pose is weighed against the current one when both fit
-# as well on the search's sample (:class:`_FullFit`).
-DECIDE_POINTS = 4000
 
 
 @dataclass
@@ -327,7 +321,6 @@ def _search(group, pre, T_world_scan, others, model, voxel, acfg, far_voxels, ma
                 return None
         return M
 
-    full = _FullFit(group, pre, T_world_scan, model, voxel, acfg, noise, far)
     for M in tried + best_far(list(turns), len(turns), acfg.min_overlap_ratio):
         M = refined(M)
         if M is None:
@@ -335,51 +328,13 @@ def _search(group, pre, T_world_scan, others, model, voxel, acfg, far_voxels, ma
         overlap, ratio = fit(M)
         if not fits_as_well(overlap, ratio, base[0], base[1], base[0] * len(src), acfg):
             continue
-        n, ref = len(src), base
-        if full.n > len(src):  # weighed again on more points (_FullFit)
-            M, (overlap, ratio), ref = full.weigh(M)
-            n = full.n
-            if M is None or not fits_as_well(overlap, ratio, ref[0], ref[1], ref[0] * n, acfg):
-                continue
         if view_conflict(group, pre, T_world_scan, others, M, acfg, views) is not None:
             continue
-        better = overlap > ref[0] + overlap_spread(ref[0], n) and ratio <= ref[1]
+        spread = overlap_spread(base[0], len(src))
+        better = overlap > base[0] + spread and ratio <= base[1]
         angle = float(np.degrees(Rotation.from_matrix(M[:3, :3]).magnitude()))
-        return Alternative(M, angle, overlap, ratio, better, ref)
+        return Alternative(M, angle, overlap, ratio, better, base)
     return None
-
-
-class _FullFit:
-    """A second pose that fits as well as the current one on the sample the search runs on
-    (``max_source`` points) is weighed against it again on up to :data:`DECIDE_POINTS` fine
-    points of the source, refined on the model on them first. :func:`fits_as_well` allows
-    the residual the sampling spread of a median, 3/sqrt(n): on 400 points a pose 12% worse
-    passes, on 1,500 it does not, while a true symmetry (equal residuals) passes on any
-    number. The current placement is measured as it is (refining it too would pull a
-    placement a little off into the basin it should be compared with). The cost falls only
-    on the candidates that passed on the sample."""
-
-    def __init__(self, group, pre, T_world_scan, model, voxel, acfg, noise, far):
-        pts = np.concatenate([transform_points(T_world_scan[s], pre[s].fine_points) for s in group])
-        nrm = np.concatenate([pre[s].fine_normals @ T_world_scan[s][:3, :3].T for s in group])
-        stride = max(1, int(np.ceil(len(pts) / DECIDE_POINTS)))
-        self.pts, self.nrm, self.n = pts[::stride], nrm[::stride], len(pts[::stride])
-        self.model, self.voxel, self.acfg, self.noise, self.far = model, voxel, acfg, noise, far
-        self._base = None
-
-    def _fit(self, M):
-        pts, nrm = transform_points(M, self.pts), self.nrm @ M[:3, :3].T
-        overlap, ratio, *_ = model_fit(self.model, pts, nrm, self.noise, self.voxel, self.acfg)
-        return overlap, ratio
-
-    def weigh(self, M):
-        """(M refined on the points, or None where it came back to the current placement;
-        its (overlap, residual ratio); the current placement's)."""
-        if self._base is None:
-            self._base = self._fit(np.eye(4))
-        M = refine_on_model(M, self.pts, self.nrm, self.model, self.voxel, self.acfg, ("fine",))
-        fitted = self._fit(M)
-        return (None if _moved(M, self.pts) <= self.far else M), fitted, self._base
 
 
 def _self_matches(union: FeatureModel, acfg: AlignConfig, far: float, max_points: int, k=12):

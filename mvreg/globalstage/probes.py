@@ -242,7 +242,7 @@ def resting_on_undetermined(out: dict, graph: dict, names) -> list[int]:
 
 def outnumbered_by_turns(out: dict) -> list[int]:
     """Mark ``undetermined`` every verified scan when more scans have a distant second pose
-    that fits as well or better (``degenerate_dof`` "a discrete turn ...", ``better_turn_deg``:
+    that fits as well (``degenerate_dof`` "a discrete turn ...":
     :func:`mvreg.globalstage.verify.search_alternatives`) than scans are verified.
 
     Most views then show the object near-symmetric, and on a near-symmetric object a pair's
@@ -251,15 +251,11 @@ def outnumbered_by_turns(out: dict) -> list[int]:
     not tell which copy each of its scans took, and the model of the others, made mostly of
     scans whose copy is open, cannot either (quadknot dense seed 2: three scans verified by
     their triangle of pairs, 60-180 deg off each other, among seven with a turned second
-    pose). A scan with a second pose that fits *better* counts too: it shows a turned copy
-    as well (ADIS16480 sparse seed 1: three scans verified, each by one pair or the model,
-    among three with a turned pose as good and one with a better one; two of the three
-    were 180 deg off). Returns the scans marked, in order."""
+    pose). Returns the scans marked, in order."""
     turned = [
         s
         for s, v in out.items()
-        if (v.status == "undetermined" and (v.degenerate_dof or "").startswith("a discrete turn"))
-        or (v.status == "unverified" and getattr(v, "better_turn_deg", None) is not None)
+        if v.status == "undetermined" and (v.degenerate_dof or "").startswith("a discrete turn")
     ]
     marked = sorted(s for s, v in out.items() if v.status == "verified")
     if not marked or len(turned) <= len(marked):
@@ -269,7 +265,7 @@ def outnumbered_by_turns(out: dict) -> list[int]:
         v.status, v.evidence = "undetermined", ""
         v.degenerate_dof = "which copy of a near-symmetric object it lies on"
         v.reason = (
-            f"{len(turned)} of the {len(out)} scans have a turned second pose as good or better "
+            f"{len(turned)} of the {len(out)} scans have a second pose as good, turned "
             f"(only {len(marked)} verified): the object is near-symmetric as seen, and the "
             "pairs that verify this scan may all have taken the same turned copy"
         )

@@ -132,9 +132,6 @@ class ScanVerification:
     # Scans whose views contradict this one under the poses checked (free-space tests
     # against scans it shares surface with; before conflicts are settled). Not reported.
     conflicting: list[int] = field(default_factory=list, repr=False)
-    # Set when the model search found a distant second pose fitting better: the turn, deg
-    # (:func:`mvreg.globalstage.probes.outnumbered_by_turns` counts it). Not reported.
-    better_turn_deg: float | None = field(default=None, repr=False)
 
     def to_dict(self) -> dict:
         def num(x):
@@ -245,7 +242,6 @@ def _mark(v: ScanVerification, alt, group: str) -> None:
     v.status = "unverified" if alt.better else "undetermined"
     v.evidence = ""
     v.degenerate_dof = None if alt.better else f"a discrete turn of {alt.angle_deg:.0f} deg"
-    v.better_turn_deg = alt.angle_deg if alt.better else None
     v.reason = (f"moved as one with {group}: " if group else "") + alt.describe()
 
 

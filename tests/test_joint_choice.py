@@ -129,6 +129,41 @@ def test_a_scan_only_one_pair_places_is_left_as_it_was(ring):
     assert _err(sets[0][2], truth[(0, 2)]) < 0.3
 
 
+def test_a_turn_two_pairs_agree_on_that_contradicts_the_placed_views_is_passed_over(ring):
+    """Scan 4's pairs (with scans 1, 2 and 3) all keep the same 90 deg turn of it, so the
+    turn closes cycles; its right pose is only pair 3-4's second hypothesis. On agreement
+    alone the turn is chosen. With the views' free-space tests the turned scan contradicts
+    the placed ones, so it is passed over and scan 4 is placed by its one right pair:
+    3-4 comes back at its right pose, 1-4 and 2-4 (no right hypothesis) rejected."""
+    pre, scales, results, truth = ring
+    broken = []
+    for r in results:
+        wrong = _turned(r.T_i_j, pre[r.j], 90, [0, 0, 1]) if r.j == 4 else r.T_i_j
+        if r.j == 4 and r.i != 3:
+            broken.append(replace(r, T_i_j=wrong, stats={"accepted_hypotheses": [(wrong, None)]}))
+        else:
+            broken.append(_hidden(r, wrong) if r.j == 4 else r)
+    assert {(r.i, r.j) for r in broken if r.j == 4} == {(1, 4), (2, 4), (3, 4)}
+    hyp = {(r.i, r.j): accepted_hypotheses(r) for r in broken}
+
+    _, sets = joint_choice(pre, broken, hyp, {}, scales.voxel, fine_voxel=scales.fine_voxel)
+    assert sorted(sets[0]) == list(range(N))
+    turned = invert_transform(sets[0][0]) @ sets[0][4]
+    assert _err(turned, truth[(0, 4)]) > 80.0  # agreement alone: the turn
+
+    views = (AlignConfig(), scales)
+    chosen, sets = joint_choice(
+        pre, broken, hyp, {}, scales.voxel, fine_voxel=scales.fine_voxel, views=views
+    )
+    assert [sorted(s) for s in sets] == [list(range(N))]
+    for k in range(1, N):
+        assert _err(invert_transform(sets[0][0]) @ sets[0][k], truth[(0, k)]) < 0.3, k
+    by_pair = {(r.i, r.j): r for r in chosen}
+    assert by_pair[(3, 4)].accepted and _err(by_pair[(3, 4)].T_i_j, truth[(3, 4)]) < 0.3
+    for pair in ((1, 4), (2, 4)):
+        assert not by_pair[pair].accepted and "agrees" in by_pair[pair].reason
+
+
 def test_the_second_pass_chooses_jointly_from_the_verified_scans(ring):
     """``UnorderedMode.recover`` with ``search.joint`` (the default): scan 2, which the first
     pass left unverified, gets its pairs chosen jointly with the verified scans 0, 1, 3, 4
@@ -158,6 +193,51 @@ def test_the_second_pass_chooses_jointly_from_the_verified_scans(ring):
         cfg=load_config(**{"search.enabled": False}), local=2, timed=lambda _name: None
     )
     assert mode.recover(off, pre, scales, broken, out, ver, []) is None
+
+
+def test_scans_left_outside_the_anchored_set_get_their_pairs_with_it_searched(ring, monkeypatch):
+    """Scans 3 and 4 are right with each other, but every pair of theirs with the verified
+    scans 0, 1 and 2 keeps only a 90 deg turn. Each one's nearest pair by descriptor is
+    3-4 (``search.joint_partners`` 1), so the first search joins neither to the anchors;
+    the search that follows tries each one's nearest pair with the anchored set (2-3 and
+    2-4), and both scans are placed at their right poses, their turned pairs rejected."""
+    import mvreg.pairwise.candidates as candidates
+    import mvreg.pairwise.joint as joint
+
+    pre, scales, results, truth = ring
+    broken = []
+    for r in results:
+        if r.j in (3, 4) and r.i < 3:
+            wrong = _turned(r.T_i_j, pre[r.j], 90, [0, 0, 1])
+            broken.append(replace(r, T_i_j=wrong, stats={"accepted_hypotheses": [(wrong, None)]}))
+        else:
+            broken.append(r)
+    place = {0: 0.0, 1: 1.0, 2: 2.0, 3: 10.0, 4: 10.5}
+    by_name = {p.name: np.array([place[k]]) for k, p in enumerate(pre)}
+    monkeypatch.setattr(candidates, "global_descriptor", lambda p: by_name[p.name])
+    searched = []
+    original = joint.search_hypotheses
+
+    def spy(pre_, results_, pairs, *a, **k):
+        searched.append(list(pairs))
+        return original(pre_, results_, pairs, *a, **k)
+
+    monkeypatch.setattr(joint, "search_hypotheses", spy)
+    cfg = load_config(
+        **{"search.joint_partners": 1, "search.screen_source_points": 100,
+           "search.screen_iterations": 2}
+    )  # fmt: skip
+    anchors = {0: np.eye(4), 1: truth[(0, 1)], 2: truth[(0, 2)]}
+    new = joint.choose_jointly(
+        pre, broken, [3, 4], anchors, cfg.align, cfg.search, 2, scales,
+        cfg.robust.cycle_check_voxels or 2.0,
+    )  # fmt: skip
+    assert searched == [[(3, 4)], [(2, 3), (2, 4)]]
+    for r in new:
+        if r.i < 3 and r.j in (3, 4) and (r.i, r.j) not in ((2, 3), (2, 4)):
+            assert not r.accepted, (r.i, r.j)
+        else:
+            assert r.accepted and _err(r.T_i_j, truth[(r.i, r.j)]) < 0.3, (r.i, r.j)
 
 
 def test_batched_icp_ends_where_icp_from_each_start_ends(ring):

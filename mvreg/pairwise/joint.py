@@ -11,10 +11,19 @@ a first pass verified; without any, the best triangle of hypotheses that close w
 tolerance). A scan is placed only at a pose that at least ``min_agreeing`` of its pairs
 with placed scans agree on (each through one of its accepted hypotheses), so every scan it
 places is on a cycle; among scans that qualify, the one with the most agreeing pairs, then
-the most overlap, goes first. Without anchors, the growth starts from each of the
-``max_seeds`` closing triangles with the most overlap, and the start that places the most
-scans, then with the most pairs agreeing, is kept; the scans left are grown into further
-sets the same way (each in its own frame) while a triangle of them closes. Each pair
+the most overlap, goes first. With the views' free-space tests (``views``, as the pipeline
+runs it: :class:`_Views`), a pose that contradicts a placed scan's view is passed over, and
+when no scan qualifies any more, a scan one pair places without contradicting any placed
+view is taken. Agreement alone can prefer a consistent turn: on sparse teapot views
+(seed 1) scan 0 was flipped 180 deg against scans 5, 6 and 9 by all three of its direct
+pairs, while its right pose closed only longer cycles (0-4-5, 0-1-6); the flipped set of
+all ten scans had more agreeing pairs (15) than the right one (13), but five pairs of it
+put surfaces in each other's free space, the right one none.
+
+Without anchors, the growth starts from each of the ``max_seeds`` closing triangles with
+the most overlap, and the start that places the most scans, then with the most pairs
+agreeing, is kept; the scans left are grown into further sets the same way (each in its
+own frame) while a triangle of them closes. Each pair
 within a set then keeps the hypothesis that agrees with the set's poses, and a pair
 accepted before that none of its hypotheses agrees with is rejected. The global stage and
 the verification run on the result as on any pairs: nothing placed here escapes the
@@ -36,11 +45,12 @@ import numpy as np
 
 from mvreg.config.align import AlignConfig, SearchConfig
 from mvreg.executor import Executor
-from mvreg.geometry import invert_transform
+from mvreg.geometry import invert_transform, transform_points
 from mvreg.pairwise.aligners import make_aligner
 from mvreg.pairwise.hypotheses import same_pose, scan_extent
 from mvreg.pairwise.preprocess import PreprocessedScan
 from mvreg.pairwise.result import PairResult, pair_result
+from mvreg.pairwise.scoring import score_alignment
 from mvreg.scales import Scales
 
 Hypotheses = dict[tuple[int, int], list[tuple[np.ndarray, dict | None]]]
@@ -64,10 +74,15 @@ def search_hypotheses(
     executor: Executor | int,
     *,
     scales: Scales | None,
+    hyp: Hypotheses | None = None,
 ) -> Hypotheses:
-    """Every pair's accepted hypotheses, with those of the rotation search added for
-    ``pairs`` (each searched once, in the order given)."""
-    hyp: Hypotheses = {(r.i, r.j): accepted_hypotheses(r) for r in results}
+    """Every pair's accepted hypotheses (those of ``hyp`` when given, else of the results),
+    with those of the rotation search added for ``pairs`` (each searched once, in the order
+    given)."""
+    if hyp is None:
+        hyp = {(r.i, r.j): accepted_hypotheses(r) for r in results}
+    else:
+        hyp = {e: list(hs) for e, hs in hyp.items()}
     if not pairs:
         return hyp
     aligner = make_aligner("rotation-search", cfg, search, scales=scales, executor=executor)
@@ -108,6 +123,53 @@ class _Agreement:
         return out
 
 
+class _Views:
+    """Whether a pose of a scan contradicts the views of placed scans: the free-space tests
+    of :func:`~mvreg.globalstage.conflicts.free_space_conflicts`, on the feature level.
+
+    A conflict with a placed scan that shares surface with it (overlap at least
+    ``min_overlap_ratio`` loosened by ``coarse_gate_slack``): either free-space share above
+    its pairwise limit loosened the same way (the pose was not refined on that pair); with
+    any placed scan: more than ``max_free_space_apart`` of the points in its free space.
+    Results are kept per pair and relative pose (a pose within the agreement tolerance of
+    one tested reads the same)."""
+
+    def __init__(self, pre, cfg: AlignConfig, scales: Scales, agreement: _Agreement):
+        self.pre, self.cfg, self.scales, self.agreement = pre, cfg, scales, agreement
+        self.seen: dict[tuple[int, int], list[tuple[np.ndarray, bool]]] = {}
+
+    def consistent(self, u: int, A: np.ndarray, placed: dict) -> bool:
+        """Whether scan ``u`` at pose ``A`` contradicts none of the ``placed`` scans."""
+        cu, ru = self.agreement.extent[u]
+        centre = transform_points(A, cu[None])[0]
+        for p, B in sorted(placed.items()):
+            cp, rp = self.agreement.extent[p]
+            if np.linalg.norm(transform_points(B, cp[None])[0] - centre) > ru + rp:
+                continue  # too far apart to see each other
+            T_p_u = invert_transform(B) @ A
+            known = self.seen.setdefault((p, u), [])
+            verdict = next((ok for T, ok in known if self.agreement.same(u, T, T_p_u)), None)
+            if verdict is None:
+                verdict = not self._conflict(p, u, T_p_u)
+                known.append((T_p_u, verdict))
+            if not verdict:
+                return False
+        return True
+
+    def _conflict(self, p: int, u: int, T_p_u: np.ndarray) -> bool:
+        cfg, slack = self.cfg, self.cfg.coarse_gate_slack
+        s = score_alignment(self.pre[p], self.pre[u], T_p_u, cfg, "feature", scales=self.scales)
+        fs, un = s["free_space_violation"], s["unseen_violation"]
+        if fs > cfg.max_free_space_apart:
+            return True
+        if not s["overlap_ratio"] >= cfg.min_overlap_ratio / slack:
+            return False
+        return bool(
+            fs > min(1.0, cfg.max_free_space_violation * slack)
+            or un > min(1.0, cfg.max_unseen_violation * slack)
+        )
+
+
 def _seeds(agreement: _Agreement, hyp: Hypotheses, overlap, limit: int, taken) -> list[dict]:
     """Up to ``limit`` triangles of hypotheses that close within the tolerance, most
     overlap first, none of whose scans is in ``taken``: {a: I, b: T_a_b, c: T_a_c} each."""
@@ -128,22 +190,39 @@ def _seeds(agreement: _Agreement, hyp: Hypotheses, overlap, limit: int, taken) -
     return [f[2] for f in sorted(found, key=lambda f: f[:2])[:limit]]
 
 
-def _grow(n: int, placed: dict, agreement: _Agreement, overlap, min_agreeing: int, taken) -> dict:
+def _grow(
+    n: int, placed: dict, agreement: _Agreement, overlap, min_agreeing: int, taken, views=None
+) -> dict:
     """Place scans one at a time (module docstring), none of ``taken``; the poses of all
-    placed scans."""
+    placed scans. With ``views`` (:class:`_Views`), a pose that contradicts a placed view
+    is passed over, and when no scan has ``min_agreeing`` agreeing pairs left, one that a
+    single pair places without contradicting any placed view is taken."""
     placed = dict(placed)
+    banned: list[tuple[int, np.ndarray]] = []
     while True:
-        best = None
+        ranked = []
         for u in range(n):
             if u in placed or u in taken:
                 continue
             for A, agree in agreement.candidates(u, placed):
                 key = (len(agree), sum(overlap.get((min(p, u), max(p, u)), 0.0) for p in agree))
-                if len(agree) >= min_agreeing and (best is None or key > best[0]):
-                    best = (key, u, A)
-        if best is None:
+                ranked.append((key, u, A))
+        ranked.sort(key=lambda c: (-c[0][0], -c[0][1]))  # stable: ties in scan order
+        floor = min_agreeing if views is None else 1
+        chosen = None
+        for (count, _), u, A in ranked:
+            if count < floor:
+                break
+            if any(b == u and agreement.same(u, A, B) for b, B in banned):
+                continue
+            if views is not None and not views.consistent(u, A, placed):
+                banned.append((u, A))
+                continue
+            chosen = (u, A)
+            break
+        if chosen is None:
             return placed
-        placed[best[1]] = best[2]
+        placed[chosen[0]] = chosen[1]
 
 
 def _agreeing_pairs(placed: dict, agreement: _Agreement, hyp: Hypotheses) -> int:
@@ -167,12 +246,16 @@ def joint_choice(
     min_agreeing: int = 2,
     max_seeds: int = 20,
     fine_voxel: float | None = None,
+    views: tuple[AlignConfig, Scales] | None = None,
 ) -> tuple[list[PairResult], list[dict[int, np.ndarray]]]:
     """(results with one hypothesis chosen per pair within each set of scans placed
     together, those sets as {scan: pose in the set's frame}, the anchors' set first) --
     module docstring. ``anchors``: {scan: T_world_scan} taken as right; ``max_voxels``:
-    the agreement tolerance, in feature voxels, on each scan's extent."""
+    the agreement tolerance, in feature voxels, on each scan's extent; ``views``: the
+    settings and scales of the free-space tests each placement must pass against the
+    placed scans (None: agreement alone)."""
     agreement = _Agreement(pre, hyp, max_voxels * voxel)
+    check = None if views is None else _Views(pre, *views, agreement)
     overlap = {(r.i, r.j): float(r.overlap_ratio) for r in results}
     overlap.update({e: overlap.get(e, 0.0) for e in hyp})
     anchored = {int(s): np.asarray(T, dtype=np.float64) for s, T in anchors.items()}
@@ -185,7 +268,7 @@ def joint_choice(
             starts = _seeds(agreement, hyp, overlap, max_seeds, taken)
         best, best_key = {}, (0, 0)
         for start in starts:
-            grown = _grow(len(pre), start, agreement, overlap, min_agreeing, taken)
+            grown = _grow(len(pre), start, agreement, overlap, min_agreeing, taken, check)
             key = (len(grown), _agreeing_pairs(grown, agreement, hyp))
             if key > best_key:
                 best, best_key = grown, key
@@ -253,28 +336,54 @@ def choose_jointly(
 ) -> list[PairResult]:
     """The second chance of the scans in ``todo`` (not verified by a first pass): each one's
     ``search.joint_partners`` candidate pairs nearest by global descriptor are searched
-    (:func:`search_hypotheses`; every scan's nearest first, then the second..., at most
-    ``search.joint_max_pairs`` in all) and one hypothesis per pair is chosen jointly
-    (:func:`joint_choice`) from ``anchors`` ({scan: T_world_scan} verified). Returns the
-    results, the same objects where nothing changed."""
+    (:func:`search_hypotheses`; every scan's nearest first, then the second...) and one
+    hypothesis per pair is chosen jointly (:func:`joint_choice`) from ``anchors``
+    ({scan: T_world_scan} verified). Where that leaves scans outside the first set (the
+    anchors', else the largest), their candidate pairs with the first set are searched the
+    same way and the choice is made again: a set that grew in its own frame needs one right
+    link to join (featuretype sparse seed 1: scans 6-9 right among themselves, none of
+    their nearest pairs with the others right). At most ``search.joint_max_pairs`` pairs
+    are searched in all. Returns the results, the same objects where nothing changed."""
     from mvreg.pairwise.candidates import global_descriptor
 
     desc = np.stack([global_descriptor(p) for p in pre])
+    budget = search.joint_max_pairs
+    pairs = _nearest_pairs(todo, results, desc, search.joint_partners, budget)
+    hyp = search_hypotheses(pre, results, pairs, cfg, search, executor, scales=scales)
+    kw = {"max_voxels": max_voxels, "fine_voxel": scales.fine_voxel, "views": (cfg, scales)}
+    new, sets = joint_choice(pre, results, hyp, anchors, scales.voxel, **kw)
+    if not sets:
+        return new
+    rest = sorted((set(todo) | {s for c in sets[1:] for s in c}) - set(sets[0]))
+    links = _nearest_pairs(
+        rest, results, desc, search.joint_partners, budget - len(pairs),
+        partners=set(sets[0]), exclude=set(pairs),
+    )  # fmt: skip
+    if not links:
+        return new
+    hyp = search_hypotheses(pre, results, links, cfg, search, executor, scales=scales, hyp=hyp)
+    return joint_choice(pre, results, hyp, anchors, scales.voxel, **kw)[0]
+
+
+def _nearest_pairs(scans, results, desc, per_scan: int, limit: int, partners=None, exclude=()):
+    """Up to ``limit`` candidate pairs of ``scans``: each scan's ``per_scan`` nearest by
+    global descriptor (with a scan of ``partners`` only, when given; none of ``exclude``),
+    every scan's nearest first, then the second..."""
     ranked = []  # per scan, its candidate pairs nearest by descriptor first
-    for a in sorted(todo):
-        mine = [(r.i, r.j) for r in results if a in (r.i, r.j)]
+    for a in sorted(scans):
+        mine = [
+            (r.i, r.j)
+            for r in results
+            if a in (r.i, r.j)
+            and (r.i, r.j) not in exclude
+            and (partners is None or (r.j if r.i == a else r.i) in partners)
+        ]
         other = np.array([j if i == a else i for i, j in mine], dtype=np.int64)
         order = np.argsort(np.linalg.norm(desc[other] - desc[a], axis=1), kind="stable")
-        ranked.append([mine[k] for k in order[: search.joint_partners]])
+        ranked.append([mine[k] for k in order[:per_scan]])
     pairs: list[tuple[int, int]] = []
-    for rank in range(search.joint_partners):  # every scan's nearest, then second, ...
+    for rank in range(per_scan):
         for mine in ranked:
             if rank < len(mine) and mine[rank] not in pairs:
                 pairs.append(mine[rank])
-    pairs = pairs[: search.joint_max_pairs]
-    hyp = search_hypotheses(pre, results, pairs, cfg, search, executor, scales=scales)
-    new, _ = joint_choice(
-        pre, results, hyp, anchors, scales.voxel, max_voxels=max_voxels,
-        fine_voxel=scales.fine_voxel,
-    )  # fmt: skip
-    return new
+    return pairs[: max(0, limit)]

@@ -156,6 +156,14 @@ class _Views:
                 return False
         return True
 
+    def coherent(self, placed: dict) -> bool:
+        """Whether no scan of ``placed`` contradicts another's view."""
+        order = sorted(placed)
+        return all(
+            self.consistent(u, placed[u], {p: placed[p] for p in order[:k]})
+            for k, u in enumerate(order)
+        )
+
     def _conflict(self, p: int, u: int, T_p_u: np.ndarray) -> bool:
         cfg, slack = self.cfg, self.cfg.coarse_gate_slack
         s = score_alignment(self.pre[p], self.pre[u], T_p_u, cfg, "feature", scales=self.scales)
@@ -225,14 +233,32 @@ def _grow(
         placed[chosen[0]] = chosen[1]
 
 
-def _agreeing_pairs(placed: dict, agreement: _Agreement, hyp: Hypotheses) -> int:
-    """How many pairs between placed scans have a hypothesis agreeing with their poses."""
-    count = 0
+def _agreeing(placed: dict, agreement: _Agreement, hyp: Hypotheses) -> list[tuple[int, int]]:
+    """The pairs between placed scans that have a hypothesis agreeing with their poses."""
+    out = []
     for (i, j), hs in hyp.items():
         if i in placed and j in placed:
             want = invert_transform(placed[i]) @ placed[j]
-            count += any(agreement.same(j, T, want) for T, _ in hs)
-    return count
+            if any(agreement.same(j, T, want) for T, _ in hs):
+                out.append((i, j))
+    return out
+
+
+def _on_cycles(placed: dict, agreement: _Agreement, hyp: Hypotheses, keep, least: int) -> dict:
+    """``placed`` without the scans (none of ``keep``) that fewer than ``least`` agreeing
+    pairs join to the others, dropped until none is left: a scan one pair placed stays
+    only where a later scan closed a cycle through it."""
+    placed = dict(placed)
+    while True:
+        count = dict.fromkeys(placed, 0)
+        for i, j in _agreeing(placed, agreement, hyp):
+            count[i] += 1
+            count[j] += 1
+        weak = [s for s, c in count.items() if c < least and s not in keep]
+        if not weak:
+            return placed
+        for s in weak:
+            del placed[s]
 
 
 def joint_choice(
@@ -266,10 +292,13 @@ def joint_choice(
             starts = [anchored]
         else:
             starts = _seeds(agreement, hyp, overlap, max_seeds, taken)
+            if check is not None:  # a triangle whose views contradict each other: no start
+                starts = [t for t in starts if check.coherent(t)]
         best, best_key = {}, (0, 0)
         for start in starts:
             grown = _grow(len(pre), start, agreement, overlap, min_agreeing, taken, check)
-            key = (len(grown), _agreeing_pairs(grown, agreement, hyp))
+            grown = _on_cycles(grown, agreement, hyp, anchored, min_agreeing)
+            key = (len(grown), len(_agreeing(grown, agreement, hyp)))
             if key > best_key:
                 best, best_key = grown, key
         if not best:

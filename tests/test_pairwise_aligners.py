@@ -257,8 +257,10 @@ def test_the_second_pass_searches_only_scans_the_first_left_unverified(views):
     ok = ScanVerification("verified", evidence="cycle")
     mode = UnorderedMode()
     out = SimpleNamespace(solution=None, T_world_scan={})
-    new = mode.recover(run, pre, scales, broken, out, {0: ok, 2: ok}, [])
-    assert new is not None and new[0].accepted and new[0].stats["search"]
+    choices = mode.recover(run, pre, scales, broken, out, {0: ok, 2: ok}, [])
+    assert choices is not None and len(choices) == 1
+    new = choices[0]
+    assert new[0].accepted and new[0].stats["search"]
     rot, trans = _errors(new[0].T_i_j, truth)
     assert rot < 0.3 and trans < 0.003
     assert new[1] is broken[1]

@@ -14,11 +14,15 @@ places is on a cycle; among scans that qualify, the one with the most agreeing p
 the most overlap, goes first. With the views' free-space tests (``views``, as the pipeline
 runs it: :class:`_Views`), a pose that contradicts a placed scan's view is passed over, and
 when no scan qualifies any more, a scan one pair places without contradicting any placed
-view is taken. Agreement alone can prefer a consistent turn: on sparse teapot views
-(seed 1) scan 0 was flipped 180 deg against scans 5, 6 and 9 by all three of its direct
-pairs, while its right pose closed only longer cycles (0-4-5, 0-1-6); the flipped set of
-all ten scans had more agreeing pairs (15) than the right one (13), but five pairs of it
-put surfaces in each other's free space, the right one none.
+view is taken; once the set stops growing, such a scan stays only where later scans closed
+a cycle through it (every scan of a set but the anchors has two agreeing pairs within it),
+and a triangle whose views contradict each other starts no set.
+
+Agreement alone can prefer a consistent turn: on sparse teapot views (seed 1) scan 0 was
+flipped 180 deg against scans 5, 6 and 9 by all three of its direct pairs, while its right
+pose closed only longer cycles (0-4-5, 0-1-6); the flipped set of all ten scans had more
+agreeing pairs (15) than the right one (13), but five pairs of it put surfaces in each
+other's free space, the right one none.
 
 Without anchors, the growth starts from each of the ``max_seeds`` closing triangles with
 the most overlap, and the start that places the most scans, then with the most pairs
@@ -362,36 +366,41 @@ def choose_jointly(
     executor: Executor | int,
     scales: Scales,
     max_voxels: float = 2.0,
-) -> list[PairResult]:
+) -> list[list[PairResult]]:
     """The second chance of the scans in ``todo`` (not verified by a first pass): each one's
     ``search.joint_partners`` candidate pairs nearest by global descriptor are searched
     (:func:`search_hypotheses`; every scan's nearest first, then the second...) and one
     hypothesis per pair is chosen jointly (:func:`joint_choice`) from ``anchors``
-    ({scan: T_world_scan} verified). Where that leaves scans outside the first set (the
-    anchors', else the largest), their candidate pairs with the first set are searched the
+    ({scan: T_world_scan} verified), twice: on agreement alone, and with the views'
+    free-space tests. For the second, where the choice leaves scans outside the first set
+    (the anchors', else the largest), their candidate pairs with that set are searched the
     same way and the choice is made again: a set that grew in its own frame needs one right
     link to join (featuretype sparse seed 1: scans 6-9 right among themselves, none of
     their nearest pairs with the others right). At most ``search.joint_max_pairs`` pairs
-    are searched in all. Returns the results, the same objects where nothing changed."""
+    are searched in all. Returns both choices (results, the same objects where nothing
+    changed); the pipeline runs a pass on each and keeps the one that verifies the most
+    scans (neither choice is better on every run: docs/design/pairwise.md)."""
     from mvreg.pairwise.candidates import global_descriptor
 
     desc = np.stack([global_descriptor(p) for p in pre])
     budget = search.joint_max_pairs
     pairs = _nearest_pairs(todo, results, desc, search.joint_partners, budget)
     hyp = search_hypotheses(pre, results, pairs, cfg, search, executor, scales=scales)
-    kw = {"max_voxels": max_voxels, "fine_voxel": scales.fine_voxel, "views": (cfg, scales)}
-    new, sets = joint_choice(pre, results, hyp, anchors, scales.voxel, **kw)
+    kw = {"max_voxels": max_voxels, "fine_voxel": scales.fine_voxel}
+    plain = joint_choice(pre, results, hyp, anchors, scales.voxel, **kw)[0]
+    kw["views"] = (cfg, scales)
+    checked, sets = joint_choice(pre, results, hyp, anchors, scales.voxel, **kw)
     if not sets:
-        return new
+        return [plain, checked]
     rest = sorted((set(todo) | {s for c in sets[1:] for s in c}) - set(sets[0]))
     links = _nearest_pairs(
         rest, results, desc, search.joint_partners, budget - len(pairs),
         partners=set(sets[0]), exclude=set(pairs),
     )  # fmt: skip
-    if not links:
-        return new
-    hyp = search_hypotheses(pre, results, links, cfg, search, executor, scales=scales, hyp=hyp)
-    return joint_choice(pre, results, hyp, anchors, scales.voxel, **kw)[0]
+    if links:
+        hyp = search_hypotheses(pre, results, links, cfg, search, executor, scales=scales, hyp=hyp)
+        checked = joint_choice(pre, results, hyp, anchors, scales.voxel, **kw)[0]
+    return [plain, checked]
 
 
 def _nearest_pairs(scans, results, desc, per_scan: int, limit: int, partners=None, exclude=()):

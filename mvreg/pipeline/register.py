@@ -119,16 +119,18 @@ def run_pipeline(run: Run, mode: Mode, source, names=None, truth=None, result_ty
 def verified_passes(run: Run, mode: Mode, ctx, pre, scales, graph):
     """The global stage with verification (:meth:`GlobalStage.run_verified`); when scans
     are left without a verified pose and the mode has pairs to search again for them
-    (``mode.recover``), a second pass on those results, kept when it verifies more scans.
+    (``mode.recover``: one or more choices of pair results), a further pass on each, the
+    one that verifies the most scans kept (a later pass only when it verifies more).
     Returns (outcome, verification, dropped) of the pass kept."""
     stage = GlobalStage(graph.plan)
-    first = stage.run_verified(ctx, pre, graph.results, run.progress, run.timed)
+    best = stage.run_verified(ctx, pre, graph.results, run.progress, run.timed)
     recover = getattr(mode, "recover", None)
-    retry = None if recover is None else recover(run, pre, scales, graph.results, *first)
-    if retry is None:
-        return first
-    second = stage.run_verified(ctx, pre, retry, run.progress, run.timed)
-    return second if _num_verified(*second[1:]) > _num_verified(*first[1:]) else first
+    retries = None if recover is None else recover(run, pre, scales, graph.results, *best)
+    for retry in retries or []:
+        again = stage.run_verified(ctx, pre, retry, run.progress, run.timed)
+        if _num_verified(*again[1:]) > _num_verified(*best[1:]):
+            best = again
+    return best
 
 
 def _num_verified(verification: dict, dropped) -> int:

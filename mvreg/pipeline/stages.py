@@ -101,14 +101,14 @@ class UnorderedMode:
         return PairGraph(results, MultiviewPlan(), columns=free_space_columns)
 
     def recover(self, run: Run, pre, scales: Scales, results, out, verification, dropped):
-        """Pair results for a second pass, or None when nothing changed. The scans the first
-        pass (``out``, ``verification``, ``dropped``) neither verified nor found
-        undetermined (a symmetry more pairs cannot settle) get their pairs searched again:
-        with ``search.joint`` (runs of at most ``search.joint_max_scans`` scans), several
-        hypotheses per pair chosen jointly, the verified scans as anchors
-        (:mod:`mvreg.pairwise.joint`); else with ``search.weak_scans``,
-        :func:`mvreg.pairwise.search.confirm_weak_scans`. A run whose scans were all
-        verified never gets here."""
+        """Pair results for further passes (a list of choices), or None when nothing
+        changed. The scans the first pass (``out``, ``verification``, ``dropped``)
+        neither verified nor found undetermined (a symmetry more pairs cannot settle)
+        get their pairs searched again: with ``search.joint`` (runs of at most
+        ``search.joint_max_scans`` scans), several hypotheses per pair chosen jointly,
+        the verified scans as anchors (:mod:`mvreg.pairwise.joint`); else with
+        ``search.weak_scans``, :func:`mvreg.pairwise.search.confirm_weak_scans`. A run
+        whose scans were all verified never gets here."""
         cfg = run.cfg
         done = {s for s, v in verification.items() if v.status in ("verified", "undetermined")}
         todo = [s for s in range(len(pre)) if s not in done]
@@ -120,20 +120,26 @@ class UnorderedMode:
                 s: T for s, T in poses.items()
                 if s not in dropped and s in verification and verification[s].status == "verified"
             }  # fmt: skip
-            new = choose_jointly(
+            choices = choose_jointly(
                 pre, results, todo, anchors, cfg.align, cfg.search, run.local, scales,
                 cfg.robust.cycle_check_voxels or 2.0,
             )  # fmt: skip
             run.timed("joint_choice")
         elif cfg.search.weak_scans:
-            new = confirm_weak_scans(
+            choices = [confirm_weak_scans(
                 pre, results, cfg.align, cfg.search, executor=run.local, scales=scales,
                 max_voxels=cfg.robust.cycle_check_voxels or 2.0, only=todo,
-            )  # fmt: skip
+            )]  # fmt: skip
             run.timed("weak_scan_search")
         else:
             return None
-        return None if all(a is b for a, b in zip(new, results, strict=True)) else new
+        out, seen = [], set()
+        for new in choices:
+            key = tuple((r.i, r.j, r.accepted, r.T_i_j.tobytes()) for r in new)
+            if key not in seen and not all(a is b for a, b in zip(new, results, strict=True)):
+                out.append(new)
+            seen.add(key)
+        return out or None
 
     def evaluate(self, run: Run, reg, pre, results, truth) -> None:
         from mvreg.pipeline.evaluate import evaluate_overlap_and_truth

@@ -301,7 +301,8 @@ def joint_choice(
         best, best_key = {}, (0, 0)
         for start in starts:
             grown = _grow(len(pre), start, agreement, overlap, min_agreeing, taken, check)
-            grown = _on_cycles(grown, agreement, hyp, anchored, min_agreeing)
+            if check is not None:  # only then can a scan hang on one pair
+                grown = _on_cycles(grown, agreement, hyp, anchored, min_agreeing)
             key = (len(grown), len(_agreeing(grown, agreement, hyp)))
             if key > best_key:
                 best, best_key = grown, key

@@ -22,7 +22,12 @@ from __future__ import annotations
 import numpy as np
 
 from mvreg.geometry import invert_transform
-from mvreg.pairwise.scoring import free_space_violation, unseen_violation
+from mvreg.pairwise.scoring import (
+    free_space_violation,
+    seen_from_sensors,
+    unseen_violation,
+    view_conflicts,
+)
 
 
 def free_space_conflicts(v, s, others, support, pre, T_world_scan, names, acfg) -> list:
@@ -37,30 +42,20 @@ def free_space_conflicts(v, s, others, support, pre, T_world_scan, names, acfg) 
         fs_all.append(fs)
         un_all.append(un)
         seen_through = f"{fs:.3f} of the points in {names[k]}'s free space"
-        if fs > acfg.max_free_space_apart and _seen_from_sensors(pre[k], pre[s]):
-            conflicts.append((k, seen_through, True))
-            continue
-        if k not in support:
-            # Reported, but otherwise a conflict only with a scan that shares surface with
-            # this one (why: docs/design/verification.md).
-            continue
-        # The pairwise limits loosened as for a pose not refined on that pair
-        # (coarse_gate_slack): no ICP of this scan on k has tightened it.
-        if fs > min(1.0, acfg.max_free_space_violation * acfg.coarse_gate_slack):
-            conflicts.append((k, seen_through, False))
-        if un > min(1.0, acfg.max_unseen_violation * acfg.coarse_gate_slack):
-            conflicts.append((k, f"{un:.3f} of the points where {names[k]} saw nothing", False))
+        why = {
+            "gross": seen_through,
+            "free_space": seen_through,
+            "unseen": f"{un:.3f} of the points where {names[k]} saw nothing",
+        }
+        # A conflict other than a gross one only with a scan that shares surface with
+        # this one (why: docs/design/verification.md); the pairwise limits loosened as
+        # for a pose not refined on that pair (no ICP of this scan on k tightened it).
+        sensors = seen_from_sensors(pre[k], pre[s])
+        for kind in view_conflicts(fs, un, k in support, acfg, sensors):
+            conflicts.append((k, why[kind], kind == "gross"))
     v.free_space_violation = float(np.nanmax(fs_all)) if np.any(np.isfinite(fs_all)) else None
     v.unseen_violation = float(np.nanmax(un_all)) if np.any(np.isfinite(un_all)) else None
     return conflicts
-
-
-def _seen_from_sensors(*views) -> bool:
-    """Whether every view has a sensor position (stored or estimated): the bound on a
-    gross conflict holds for views seen from their sensor. Along one axis (no position
-    found), a right pose can read far more: chair_model dense seed 1, scan_001 placed at
-    its true pose read 0.68 of its points in scan_008's free space, 0.43 in scan_003's."""
-    return all(getattr(v, "viewpoint", None) is not None for v in views)
 
 
 def settle_conflicts(out, conflicts, scans) -> None:

@@ -46,7 +46,7 @@ from mvreg.globalstage.scan_model import ScanModel, model_fit, normal_matrix, ov
 from mvreg.pairwise.features import FeatureBasis
 from mvreg.pairwise.hypotheses import distinct_poses, ransac_numpy, scan_extent
 from mvreg.pairwise.icp import feature_level_tree, icp_point_to_plane
-from mvreg.pairwise.scoring import free_space_violation, unseen_violation
+from mvreg.pairwise.scoring import free_space_violation, loosened_view_limits, unseen_violation
 
 # RANSAC motions refined per group of scans moved as one (single scans: 4, the default of
 # :func:`distant_alternative`). Groups are few (the sides of bridges), and a group's true
@@ -173,8 +173,7 @@ def view_conflict(group, pre, T_world_scan, others, M: np.ndarray, acfg: AlignCo
     Differences, not raw shares: between right poses of views that share no surface both
     tests read above their limits (docs/design/verification.md)."""
     cache = {} if cache is None else cache
-    fs_limit = min(1.0, acfg.max_free_space_violation * acfg.coarse_gate_slack)
-    un_limit = min(1.0, acfg.max_unseen_violation * acfg.coarse_gate_slack)
+    fs_limit, un_limit = loosened_view_limits(acfg)
     for k in others:
         T_k_world = invert_transform(T_world_scan[k])
         for s in group:

@@ -54,7 +54,7 @@ from mvreg.pairwise.aligners import make_aligner
 from mvreg.pairwise.hypotheses import same_pose, scan_extent
 from mvreg.pairwise.preprocess import PreprocessedScan
 from mvreg.pairwise.result import PairResult, pair_result
-from mvreg.pairwise.scoring import score_alignment
+from mvreg.pairwise.scoring import score_alignment, view_conflicts
 from mvreg.scales import Scales
 
 Hypotheses = dict[tuple[int, int], list[tuple[np.ndarray, dict | None]]]
@@ -128,8 +128,8 @@ class _Agreement:
 
 
 class _Views:
-    """Whether a pose of a scan contradicts the views of placed scans: the free-space tests
-    of :func:`~mvreg.globalstage.conflicts.free_space_conflicts`, on the feature level.
+    """Whether a pose of a scan contradicts the views of placed scans: the rule verification
+    uses (:func:`~mvreg.pairwise.scoring.view_conflicts`), on the feature level.
 
     A conflict with a placed scan that shares surface with it (overlap at least
     ``min_overlap_ratio`` loosened by ``coarse_gate_slack``): either free-space share above
@@ -169,17 +169,14 @@ class _Views:
         )
 
     def _conflict(self, p: int, u: int, T_p_u: np.ndarray) -> bool:
-        cfg, slack = self.cfg, self.cfg.coarse_gate_slack
+        cfg = self.cfg
         s = score_alignment(self.pre[p], self.pre[u], T_p_u, cfg, "feature", scales=self.scales)
+        shares = bool(s["overlap_ratio"] >= cfg.min_overlap_ratio / cfg.coarse_gate_slack)
+        # The gross rule applies here also to views without a sensor position (verification
+        # spares those): this choice only ranks hypotheses, and a right pose it passes over
+        # is still in the choice on agreement alone, which gets a pass too.
         fs, un = s["free_space_violation"], s["unseen_violation"]
-        if fs > cfg.max_free_space_apart:
-            return True
-        if not s["overlap_ratio"] >= cfg.min_overlap_ratio / slack:
-            return False
-        return bool(
-            fs > min(1.0, cfg.max_free_space_violation * slack)
-            or un > min(1.0, cfg.max_unseen_violation * slack)
-        )
+        return bool(view_conflicts(fs, un, shares, cfg, sensors=True))
 
 
 def _seeds(agreement: _Agreement, hyp: Hypotheses, overlap, limit: int, taken) -> list[dict]:

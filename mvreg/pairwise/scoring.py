@@ -356,6 +356,41 @@ def unseen_violation(
     return max(in_i, in_j)
 
 
+def loosened_view_limits(cfg: AlignConfig) -> tuple[float, float]:
+    """The pairwise free-space and unseen limits loosened by ``coarse_gate_slack``: the
+    limits for a relative pose that no ICP on that pair has tightened."""
+    slack = cfg.coarse_gate_slack
+    return (
+        min(1.0, cfg.max_free_space_violation * slack),
+        min(1.0, cfg.max_unseen_violation * slack),
+    )
+
+
+def seen_from_sensors(*views) -> bool:
+    """Whether every view has a sensor position (stored or estimated): the bound on a
+    gross conflict holds for views seen from their sensor. Along one axis (no position
+    found), a right pose can read far more: chair_model dense seed 1, scan_001 placed at
+    its true pose read 0.68 of its points in scan_008's free space, 0.43 in scan_003's."""
+    return all(getattr(v, "viewpoint", None) is not None for v in views)
+
+
+def view_conflicts(fs: float, un: float, shares_surface: bool, cfg: AlignConfig,
+                   sensors: bool = True) -> list[str]:  # fmt: skip
+    """The one rule for when two placed views contradict each other, given the share of
+    one's points in the other's free space (``fs``) and where it saw nothing (``un``):
+    ``["gross"]`` when ``fs`` exceeds ``max_free_space_apart`` and both views are seen from
+    their sensor (``sensors``), whatever surface they share; otherwise, between views
+    that share surface, ``"free_space"`` and/or ``"unseen"`` for each share above its
+    loosened pairwise limit (:func:`loosened_view_limits`); ``[]`` for no conflict. NaN
+    (no view direction) never contradicts."""
+    if fs > cfg.max_free_space_apart and sensors:
+        return ["gross"]
+    if not shares_surface:
+        return []
+    fs_limit, un_limit = loosened_view_limits(cfg)
+    return [k for k, x, lim in (("free_space", fs, fs_limit), ("unseen", un, un_limit)) if x > lim]
+
+
 def prepare_scans(pre: Sequence[PreprocessedScan], scales: Scales | None = None) -> None:
     """Build the scans' cached structures that scoring and ICP read (KD-trees on both
     levels, depth grids, lateral trees), so that threads share them afterwards."""

@@ -248,6 +248,27 @@ def test_a_pose_that_overlaps_less_can_fit_as_well():
     assert not fits_as_well(0.90, acfg.max_residual_ratio + 0.1, 0.91, 5.0, 900, acfg)
 
 
+def test_a_second_pose_fits_better_when_the_current_one_does_not_fit_as_well_as_it():
+    """Two poses each fitting as well as the other leave the pose undetermined; when the
+    current one does not fit as well as the second (swapped roles), the data choose."""
+    from mvreg.globalstage.model_search import fits_as_well, fits_better
+
+    acfg = AlignConfig()
+    # chair_model sparse seed 1, scan_003 27.6 deg off: the truth at residual 0.9x the
+    # noise against 1.2x, overlap 0.88 vs 0.87 (500 points sampled): better.
+    assert fits_as_well(0.88, 0.9, 0.87, 1.2, 0.87 * 500, acfg)
+    assert fits_better(0.88, 0.9, 0.87, 1.2, 500, acfg)
+    # A teapot view turned 179 deg about its body (overlap 0.90 vs 0.93, residual 1.0x
+    # vs 0.9x): each fits as well as the other, so neither is better.
+    assert fits_as_well(0.90, 1.0, 0.93, 0.9, 0.93 * 500, acfg)
+    assert not fits_better(0.90, 1.0, 0.93, 0.9, 500, acfg)
+    # idler_riser sparse seed 1, 15 deg off (0.915 vs 0.889, 0.86x vs 0.91x): the current
+    # pose's residual is within the second one's sampling spread; undetermined.
+    assert not fits_better(0.915, 0.86, 0.889, 0.91, 500, acfg)
+    # More overlap beyond the sampling spread at no larger residual: better.
+    assert fits_better(0.95, 0.9, 0.80, 0.9, 500, acfg)
+
+
 def test_a_leftover_without_usable_descriptors_is_placed_by_rotation_starts(builtin_set):
     """A scan whose descriptors say nothing (shuffled among its points: no right match) and
     no pair hypotheses: the descriptor-free starts still place it, at the truth."""

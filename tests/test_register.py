@@ -54,6 +54,9 @@ def test_bunny_all_registered_within_targets(bunny_run):
     report = json.loads((out / "report.json").read_text())
     assert report["unregistered"] == []
     assert report["certificate"]["certified"] is True
+    # Every real scan verified (the run exits 0 only so; asserted here, not only implied).
+    ver = report["verification"]["scans"]
+    assert sorted(ver) == names and all(v["status"] == "verified" for v in ver.values()), ver
     # Overlap residual no larger than that of bun.conf's own alignment (same metric).
     ours = report["overlap_residual"]["mean"]
     assert ours > 0

@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import json
-from pathlib import Path
 
 import numpy as np
 import pytest
@@ -191,16 +190,6 @@ def test_symmetric_object_never_exits_0_with_a_guessed_pose(tmp_path):
         assert left and all(n not in placed for n in left)
         assert any(v["status"] == "undetermined" for v in ver.values())
         assert any(v["degenerate_dof"] for v in ver.values())
-
-
-@pytest.mark.slow
-def test_real_bunny_all_verified(shared_data: Path):
-    from mvreg.pipeline import register
-
-    reg = register(shared_data / "stanford_bunny_scans", seed=0)
-    assert reg.all_registered, reg.verification
-    assert len(reg.T_world_scan) == 10
-    assert all(v["status"] == "verified" for v in reg.verification.values())
 
 
 def test_main_block_leaves_out_groups_hanging_on_one_pair():

@@ -119,3 +119,35 @@ def test_the_fast_median_and_quartiles_equal_numpys_bit_for_bit():
         q1, q3 = quartiles_last_axis(flat)
         p = np.percentile(flat, [25, 75], axis=-1)
         assert np.array_equal(q1, p[0]) and np.array_equal(q3, p[1])
+
+
+@pytest.mark.parametrize("maxfev", [7, 23, 120])
+def test_nelder_mead_run_together_equals_scipys_one_after_the_other(maxfev):
+    """mvreg.pairwise.nelder_mead against scipy.optimize.minimize bit for bit: rough
+    functions with ties and plateaus, runs cut short by maxfev (also inside a shrink)."""
+    from scipy.optimize import minimize
+
+    from mvreg.pairwise.nelder_mead import minimize_together
+
+    rng = np.random.default_rng(4)
+    centres = rng.normal(size=(6, 3))
+
+    def f(k, x):
+        r = x - centres[k]
+        value = float(np.sum(r**2) + 0.3 * np.sin(7 * r[0]) * np.cos(5 * r[1]))
+        return np.inf if k == 5 and x[2] > 0.4 else round(value, 2 if k % 2 else 12)
+
+    simplices = []
+    for _ in range(6):
+        x0 = rng.normal(size=3)
+        simplices.append(np.vstack([x0, x0 + [0.2, 0, 0], x0 + [0, 0.08, 0], x0 + [0, 0, 0.08]]))
+    together = minimize_together(
+        lambda asked: [f(k, x) for k, x in asked], simplices, 1e-3, 1e-4, maxfev
+    )
+    for k, (x, fun) in enumerate(together):
+        r = minimize(
+            lambda x, k=k: f(k, x), simplices[k][0], method="Nelder-Mead",
+            options={"xatol": 1e-3, "fatol": 1e-4, "maxfev": maxfev,
+                     "initial_simplex": simplices[k]},
+        )  # fmt: skip
+        assert np.array_equal(x, r.x) and fun == r.fun, (k, x, r.x, fun, r.fun)

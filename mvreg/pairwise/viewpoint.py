@@ -38,8 +38,9 @@ when the grid seen from it passes the same tests, it is taken without a search.
 from __future__ import annotations
 
 import numpy as np
-from scipy.optimize import minimize
 from scipy.spatial import cKDTree
+
+from mvreg.pairwise.nelder_mead import minimize_together
 
 PATCHES = 6
 PATCH_POINTS = 160
@@ -200,29 +201,33 @@ def estimate_viewpoint(
 
     grid = [(d, f) for d in DIRECTIONS for f in DISTANCES]
     values = spread_from(np.array([m + f * radius * d for d, f in grid]))
-    res, best_c = None, None
+    starts = []
     for i in np.argsort(values, kind="stable")[:STARTS]:
         if not np.isfinite(values[i]):
             break
         d0, f0 = grid[i]
-        a, b = _tangents(d0)
+        starts.append((d0, *_tangents(d0), np.array([np.log(f0), 0.0, 0.0])))
 
-        def objective(x, d0=d0, a=a, b=b):
-            dist = radius * np.exp(x[0])
-            return float(spread_from(m + dist * (d0 + x[1] * a + x[2] * b))[0])
+    def centre(k, x):
+        d0, a, b, _ = starts[k]
+        dist = radius * np.exp(x[0])
+        return m + dist * (d0 + x[1] * a + x[2] * b)
 
-        x0 = np.array([np.log(f0), 0.0, 0.0])
-        simplex = np.vstack([x0, x0 + [0.2, 0, 0], x0 + [0, 0.08, 0], x0 + [0, 0, 0.08]])
-        r = minimize(
-            objective, x0, method="Nelder-Mead",
-            options={"xatol": 1e-3, "fatol": 1e-4, "maxfev": 120, "initial_simplex": simplex},
-        )  # fmt: skip
-        if res is None or r.fun < res.fun:
-            dist = radius * np.exp(r.x[0])
-            res, best_c = r, m + dist * (d0 + r.x[1] * a + r.x[2] * b)
+    # The starts refined together (mvreg.pairwise.nelder_mead: as scipy's Nelder-Mead one
+    # after the other, in a quarter of the calls).
+    found = minimize_together(
+        lambda asked: spread_from(np.array([centre(k, x) for k, x in asked])),
+        [np.vstack([x0, x0 + [0.2, 0, 0], x0 + [0, 0.08, 0], x0 + [0, 0, 0.08]])
+         for *_, x0 in starts],
+        xatol=1e-3, fatol=1e-4, maxfev=120,
+    )  # fmt: skip
+    res, best_c = None, None
+    for k, (x, fun) in enumerate(found):
+        if res is None or fun < res:
+            res, best_c = fun, centre(k, x)
     if res is None:
         return None, {"reason": "no sensor position outside the points"}
-    stats = _judge(best_c, float(res.fun), queries, near, m, radius, max_spread_ratio)
+    stats = _judge(best_c, float(res), queries, near, m, radius, max_spread_ratio)
     return (best_c if stats["accepted"] else None), stats
 
 

@@ -261,3 +261,31 @@ def test_batched_icp_ends_where_icp_from_each_start_ends(ring):
         one = icp_point_to_plane(*args, T0, 4 * v, 30, 0.5)
         assert _err(B, one) < 0.01
     assert np.median([_err(B, truth[(0, 1)]) for B in batch]) < 1.0
+
+
+def test_a_pair_the_rotation_search_already_gave_is_not_searched_again(ring, monkeypatch):
+    """search_hypotheses skips a pair whose result is the rotation search's (as
+    connect_unconnected leaves it): the same hypotheses as searching it again, no search."""
+    from mvreg.config import SearchConfig
+    from mvreg.pairwise.aligners.rotation_search import RotationSearchAligner, search_pair
+    from mvreg.pairwise.joint import search_hypotheses
+
+    pre, scales, _, _ = ring
+    cfg, search = AlignConfig(), SearchConfig()
+    found = search_pair(pre[0], pre[1], cfg, search, 0, 1, executor=1, scales=scales)
+    assert found.stats["search"] and accepted_hypotheses(found)  # a pose was found
+    unmarked = replace(found, stats={k: v for k, v in found.stats.items() if k != "search"})
+    again = search_hypotheses(pre, [unmarked], [(0, 1)], cfg, search, 1, scales=scales)
+    calls = []
+    original = RotationSearchAligner.align
+    monkeypatch.setattr(
+        RotationSearchAligner,
+        "align",
+        lambda self, *a, **k: calls.append(1) or original(self, *a, **k),
+    )
+    skipped = search_hypotheses(pre, [found], [(0, 1)], cfg, search, 1, scales=scales)
+    assert calls == []
+    assert list(skipped) == list(again) == [(0, 1)]
+    assert len(skipped[(0, 1)]) == len(again[(0, 1)])
+    for (A, _), (B, _) in zip(skipped[(0, 1)], again[(0, 1)], strict=True):
+        np.testing.assert_array_equal(A, B)

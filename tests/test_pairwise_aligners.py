@@ -228,6 +228,11 @@ def test_a_scan_no_cycle_confirms_has_its_rejected_pairs_searched(views):
     assert rot < 0.3 and trans < 0.003
     assert fixed[1] is broken[1]  # (0, 2) was never rejected
     assert fixed[2].accepted and fixed[2].stats["search"]
+    # A rejected pair whose result already is the rotation search's is not searched again
+    # (the search is deterministic: it would give the same).
+    searched = [replace(fixed[0], accepted=False, reason="test"), broken[1], broken[2]]
+    again = confirm_weak_scans(pre, searched, AlignConfig(), quick, scales=scales)
+    assert again[0] is searched[0]
 
 
 def test_the_second_pass_searches_only_scans_the_first_left_unverified(views):

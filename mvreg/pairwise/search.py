@@ -142,6 +142,8 @@ def confirm_weak_scans(
         other = [results[k].j if results[k].i == a else results[k].i for k in tried]
         for n in np.argsort(np.linalg.norm(desc[other] - desc[a], axis=1), kind="stable"):
             k = tried[n]
+            if method == "rotation-search" and results[k].stats.get("search"):
+                continue  # already this search's result (connect_unconnected): the same again
             if aligner is None:
                 aligner = make_aligner(method, cfg, search, scales=scales, executor=executor)
                 aligner.prepare(pre)

@@ -60,10 +60,12 @@ def nelder_mead(
     sim, fsim = _sorted(sim, fsim)  # SciPy sorts twice here; ties may be reordered
     while calls[0] < maxfev:
         try:
-            if (
-                np.max(np.ravel(np.abs(sim[1:] - sim[0]))) <= xatol
-                and np.max(np.abs(fsim[0] - fsim[1:])) <= fatol
-            ):
+            with np.errstate(invalid="ignore"):  # inf - inf: NaN, not within fatol, as in SciPy
+                done = (
+                    np.max(np.ravel(np.abs(sim[1:] - sim[0]))) <= xatol
+                    and np.max(np.abs(fsim[0] - fsim[1:])) <= fatol
+                )
+            if done:
                 break
             yield from _step(sim, fsim, n, calls, maxfev)
         except _Exhausted:

@@ -10,6 +10,13 @@ columns of X (LOBPCG with constraints), and the KKT residual E = ||(C + Lambda) 
 X^T (C + Lambda) X = 0 exactly, lambda_min(C + Lambda) >= (mu - sqrt(mu^2 + 4 ||E||_2^2)) / 2,
 which gives a rigorous bound on the suboptimality even for a slightly inexact stationary
 point. All eigenvalues are reported relative to lambda_max(C) (dimensionless).
+
+Where a sparse LDL^T factorization with inertia is at hand (PARDISO) the eigensolver is
+first replaced by one factorization of C + Lambda - tau I (``_inertia_bound``): exactly d
+negative pivots prove mu >= a bound close to tau, with no eigenvector iterations (the
+check SE-Sync's successors make with a Cholesky factorization; Papalia et al. 2022). On an
+expander-like overlap graph, whose bottom spectrum is clustered, this replaces ~150
+shift-invert solves. Where it does not certify, the eigensolver runs as before.
 """
 
 from __future__ import annotations
@@ -21,6 +28,7 @@ import numpy as np
 import scipy.linalg as sla
 import scipy.sparse.linalg as spla
 
+from mvreg.solver import pardiso
 from mvreg.solver.blocks import block_apply, sym, x_from_rotations
 from mvreg.solver.shift_invert import SHIFT, ShiftedInverse, direct_feasible
 from mvreg.solver.spectral import block_jacobi
@@ -46,7 +54,11 @@ class Certificate:
     lower_bound: objective - suboptimality_bound: no rotations reach a lower REG cost (the
         dual bound of Lemma 2 / the C-SDP). Reported whether certified or not, so that an
         uncertified answer still says how far from optimal it can be at most.
-    eigen_residual: LOBPCG residual norm of the computed eigenpair (accuracy of mu).
+    eigen_residual: LOBPCG residual norm of the computed eigenpair (accuracy of mu); 0 for
+        ``eigen_method`` "inertia".
+    eigen_method: "eigensolver" (min_eigenvalue is the computed eigenvalue), "dense", or
+        "inertia": min_eigenvalue is a proven lower bound of mu from the inertia of one
+        factorization of C + Lambda - tau I (``_inertia_bound``), not an estimate of it.
     """
 
     certified: bool
@@ -59,6 +71,7 @@ class Certificate:
     eigen_residual: float
     tolerance: float
     lower_bound: float = float("nan")
+    eigen_method: str = "eigensolver"
 
     def to_dict(self) -> dict:
         return {k: (bool(v) if isinstance(v, np.bool_) else v) for k, v in asdict(self).items()}
@@ -159,6 +172,56 @@ def _lobpcg_min_eig(aop, inverse, q, lam_max, rng, n, block=4, maxiter=60):
     return float(w[i]), res
 
 
+def inertia_shift(smallest: np.ndarray, d: int) -> float | None:
+    """The shift tau for ``_inertia_bound`` from the d+1 smallest eigenvalues of C:
+    half the gap lambda_{d+1}(C) - lambda_d(C). At an optimum C + Lambda ~ C - lambda_bar I
+    on the complement of the solution, so mu is near that gap (random graph, M = 1,000,
+    noise 4%: gap 1.25e-3, mu 1.28e-3; geometric, M = 10,000: 1.8e-4 and 1.9e-4, relative
+    to lambda_max). None when there is no gap."""
+    if smallest is None or len(smallest) <= d:
+        return None
+    gap = float(smallest[d] - smallest[d - 1])
+    return 0.5 * gap if gap > 0 else None
+
+
+def _inertia_bound(aop, op, lam, q, tau: float, d: int):
+    """(mu_lb, lam_min_full_lb): proven lower bounds of mu (the smallest eigenvalue of
+    A = C + Lambda on the complement of span(q)) and of lambda_min(A), from the inertia of
+    one LDL^T factorization of A - tau I; None when it does not apply.
+
+    If A - tau I has exactly d negative eigenvalues (the factor's negative pivots, Sylvester
+    and Haynsworth: shift_invert.ShiftedInverse), A has exactly d eigenvalues below tau,
+    with eigenspace U. span(q) has Ritz values H = q^T A q in [h_lo, h_hi] (~0 at a KKT
+    point) and residual R = A q - q H. When r = ||R||_2 < delta = tau - h_hi:
+    - Kahan's theorem puts d eigenvalues of A within r of the Ritz values; they are below
+      tau, so they are U's: lambda_min(A) >= h_lo - r;
+    - the Davis-Kahan sin-theta theorem bounds the angle between span(q) and U:
+      sin <= s = r / delta. A unit w orthogonal to q has ||P_U w|| <= s, hence
+      w^T A w >= (1 - s^2) tau + s^2 (h_lo - r) =: mu_lb;
+    - in the basis [q, complement] A = [[H, E^T], [E, B]] with ||E|| <= r and B >= mu_lb,
+      so lambda_min(A) >= the smaller eigenvalue of [[h_lo, r], [r, mu_lb]].
+    """
+    if tau is None or not tau > 0 or not pardiso.available():
+        return None
+    neg = ShiftedInverse(op, lam, -tau).negative_eigenvalues
+    if neg != d:
+        return None  # not known (perturbed pivots, SuperLU) or mu < tau: the eigensolver
+    aq = aop.matmat(q)
+    h = q.T @ aq
+    h = 0.5 * (h + h.T)
+    r = float(np.linalg.norm(aq - q @ h, 2))
+    hw = np.linalg.eigvalsh(h)
+    delta = tau - float(hw[-1])
+    if not r < delta:
+        return None
+    s2 = (r / delta) ** 2
+    low = float(hw[0]) - r
+    mu_lb = (1.0 - s2) * tau + s2 * min(low, tau)
+    a, b = float(hw[0]), mu_lb
+    two_by_two = 0.5 * ((a + b) - np.sqrt((b - a) ** 2 + 4.0 * r * r))
+    return mu_lb, min(0.0, max(low, two_by_two))
+
+
 def certify(
     op,
     R: np.ndarray,
@@ -168,12 +231,15 @@ def certify(
     seed: int = 0,
     maxiter: int = 400,
     inverse=None,
+    tau: float | None = None,
 ) -> Certificate:
     """Certificate for rotations R (M, d, d) of the normalized problem in ``op``.
 
     ``inverse``: an approximate (C + Lambda + sigma I)^{-1} from a nearby point (the Newton
     polish's preconditioner on large problems) to precondition the eigensolver with, instead
     of factorizing anew.
+    ``tau``: the shift of the inertia check (``inertia_shift``, in C's units); tried first
+    where a sparse factorization with inertia is affordable and no ``inverse`` is given.
     """
     d, n = op.d, op.n
     X = x_from_rotations(R)
@@ -183,6 +249,34 @@ def certify(
     e_fro = float(np.linalg.norm(grad))
     kkt = e_fro / (lam_max * np.sqrt(n))
     q, _ = np.linalg.qr(X)
+    s2 = op.norm.scale**2
+
+    def outcome(mu, lam_min_full, eig_res, method):
+        bound_norm = max(0.0, -lam_min_full) * n
+        objective, bound = f_norm * s2, bound_norm * s2
+        if objective > 0:
+            rel = bound / max(objective, 1e-300)
+        else:
+            rel = 0.0 if bound == 0 else np.inf
+        # Absolute floor: clean data has objective ~0; compare with lambda_max's scale too.
+        certified = bool(
+            mu >= -EIG_TOL * lam_max
+            and (rel <= gap_tol or bound_norm <= gap_tol * 1e-6 * lam_max * n)
+        )
+        return Certificate(
+            certified=certified,
+            objective=objective,
+            kkt_residual=kkt,
+            min_eigenvalue=mu / lam_max,
+            min_eigenvalue_full=lam_min_full / lam_max,
+            suboptimality_bound=bound,
+            relative_gap=float(rel),
+            eigen_residual=eig_res,
+            tolerance=gap_tol,
+            lower_bound=objective - bound,
+            eigen_method=method,
+        )
+
     if dense or n <= 60:  # tiny problems: iterative eigensolvers need n >> block size
         a = op.dense().copy()
         for i in range(op.M):
@@ -195,34 +289,23 @@ def certify(
         # Shift span(X) up so it does not mask the complement's smallest eigenvalue.
         pap += q @ q.T * (2.0 * lam_max)
         mu = float(sla.eigh(pap, eigvals_only=True, subset_by_index=[0, 0])[0])
-        eig_res = 0.0
-    else:
+        return outcome(mu, _full_bound(mu, grad, e_fro), 0.0, "dense")
 
-        def apply(v):
-            return op.matvec(v) + block_apply(lam, v)
+    def apply(v):
+        return op.matvec(v) + block_apply(lam, v)
 
-        aop = spla.LinearOperator((n, n), matvec=apply, matmat=apply, dtype=np.float64)
-        mu, eig_res = _complement_min_eig(aop, op, lam, q, lam_max, d, seed, maxiter, inverse)
+    aop = spla.LinearOperator((n, n), matvec=apply, matmat=apply, dtype=np.float64)
+    if inverse is None and tau is not None and direct_feasible(op):
+        fast = _inertia_bound(aop, op, lam, q, tau, d)
+        if fast is not None:
+            cert = outcome(fast[0], fast[1], 0.0, "inertia")
+            if cert.certified:
+                return cert
+    mu, eig_res = _complement_min_eig(aop, op, lam, q, lam_max, d, seed, maxiter, inverse)
+    return outcome(mu, _full_bound(mu, grad, e_fro), eig_res, "eigensolver")
+
+
+def _full_bound(mu: float, grad: np.ndarray, e_fro: float) -> float:
+    """A lower bound on lambda_min(C + Lambda) from mu and the KKT residual (module doc)."""
     e2 = float(np.linalg.norm(grad, 2)) if e_fro > 0 else 0.0
-    lam_min_full = min(0.0, 0.5 * (mu - np.sqrt(mu * mu + 4.0 * e2 * e2))) if mu > 0 else mu
-    s2 = op.norm.scale**2
-    bound_norm = max(0.0, -lam_min_full) * n
-    objective = f_norm * s2
-    bound = bound_norm * s2
-    rel = bound / max(objective, 1e-300) if objective > 0 else (0.0 if bound == 0 else np.inf)
-    # Absolute floor: clean data has objective ~0; compare with lambda_max's scale too.
-    certified = bool(
-        mu >= -EIG_TOL * lam_max and (rel <= gap_tol or bound_norm <= gap_tol * 1e-6 * lam_max * n)
-    )
-    return Certificate(
-        certified=certified,
-        objective=objective,
-        kkt_residual=kkt,
-        min_eigenvalue=mu / lam_max,
-        min_eigenvalue_full=lam_min_full / lam_max,
-        suboptimality_bound=bound,
-        relative_gap=float(rel),
-        eigen_residual=eig_res,
-        tolerance=gap_tol,
-        lower_bound=objective - bound,
-    )
+    return min(0.0, 0.5 * (mu - np.sqrt(mu * mu + 4.0 * e2 * e2))) if mu > 0 else mu

@@ -16,7 +16,7 @@ import time
 import numpy as np
 
 from mvreg.solver.base import SolverContext
-from mvreg.solver.certificate import EIG_TOL, certify
+from mvreg.solver.certificate import EIG_TOL, certify, inertia_shift
 from mvreg.solver.polish import KKT_TOL, polish, repolish
 from mvreg.solver.staircase import escape
 
@@ -66,7 +66,16 @@ class BestPoint:
         t0 = time.perf_counter()
         c = self.ctx
         cert = (
-            certify(c.operator, R, self.lam_max, c.dense, c.gap_tol, c.seed, inverse=inverse)
+            certify(
+                c.operator,
+                R,
+                self.lam_max,
+                c.dense,
+                c.gap_tol,
+                c.seed,
+                inverse=inverse,
+                tau=inertia_shift(c.spectrum.smallest, c.operator.d),
+            )  # fmt: skip
             if c.certify
             else None
         )

@@ -34,6 +34,13 @@ DIRECT_LAPLACIAN_MAX_PATCHES = 20000
 # With PARDISO a Laplacian whose factor is forecast nearly dense and costly
 # (krylov.dense_factor) is solved by Jacobi-PCG instead (random overlap graph, M = 10k:
 # factor 9e6 nonzeros, 3.7 s, 25-70 ms per solve; PCG 42 iterations to 1e-15, 4-20 ms).
+# Iterative refinement of the factorized Laplacian solves: a step is taken only while the
+# normwise backward error ||b - S x||_inf / (||S||_inf ||x||_inf + ||b||_inf) exceeds
+# this (an LDL^T with pivoting is backward stable: ~1e-16 as a rule, and a refinement step
+# in the same precision cannot do better). PARDISO's own refinement took both its steps on
+# every solve: random graph, M = 1,000, 1.04 ms per 3-column solve against 0.27 ms.
+REFINE_BACKWARD_ERROR = 1e-14
+REFINE_MAX_STEPS = 2
 
 
 class LaplacianSolver:
@@ -63,7 +70,7 @@ class LaplacianSolver:
         if self.m == 1:
             return
         if method == "pardiso":
-            self._lu = pardiso.PardisoFactor(self.red, refine=True)
+            self._lu = pardiso.PardisoFactor(self.red)
         elif method == "pcg":
             pass
         elif method == "direct":
@@ -85,7 +92,7 @@ class LaplacianSolver:
             if self.method == "pcg":
                 x = self._pcg(b2)
             elif self.method in ("direct", "pardiso"):
-                x[1:] = self._lu.solve(np.ascontiguousarray(b2[1:]))
+                x[1:] = self._refined(np.ascontiguousarray(b2[1:]))
             else:
                 for c in range(b2.shape[1]):
                     rhs = b2[1:, c]
@@ -98,6 +105,21 @@ class LaplacianSolver:
                     x[1:, c] = sol
         x -= x.mean(axis=0, keepdims=True)
         return x[:, 0] if squeeze else x
+
+    def _refined(self, b: np.ndarray) -> np.ndarray:
+        """The factorized solve of the grounded system, refined while its backward error is
+        above ``REFINE_BACKWARD_ERROR``."""
+        x = self._lu.solve(b)
+        if getattr(self, "_norm", None) is None:
+            self._norm = float(abs(self.red).sum(axis=1).max())
+        nb = float(np.max(np.abs(b))) if b.size else 0.0
+        for _ in range(REFINE_MAX_STEPS):
+            r = b - self.red @ x
+            scale = self._norm * float(np.max(np.abs(x))) + nb
+            if not float(np.max(np.abs(r))) > REFINE_BACKWARD_ERROR * scale:
+                break
+            x = x + self._lu.solve(r)
+        return x
 
     def _factor_fills_in(self) -> bool:
         """PARDISO's forecast for the grounded Laplacian: a nearly dense, costly factor."""
@@ -115,11 +137,11 @@ class LaplacianSolver:
             return x
         # The Krylov path failed here: factorize from now on.
         if pardiso.available():
-            self.method, self._lu = "pardiso", pardiso.PardisoFactor(self.red, refine=True)
+            self.method, self._lu = "pardiso", pardiso.PardisoFactor(self.red)
         else:
             self.method, self._lu = "direct", spla.splu(self.red, permc_spec="MMD_AT_PLUS_A")
         x = np.zeros_like(b)
-        x[1:] = self._lu.solve(np.ascontiguousarray(b[1:]))
+        x[1:] = self._refined(np.ascontiguousarray(b[1:]))
         return x
 
 

@@ -89,7 +89,9 @@ class SolveResult:
             "None"
             if c is None
             else (
-                f"certified={c.certified}, min_eig={c.min_eigenvalue:.3g}, kkt={c.kkt_residual:.2g}"
+                f"certified={c.certified}, "
+                f"min_eig{'>=' if c.eigen_method == 'inertia' else '='}{c.min_eigenvalue:.3g}, "
+                f"kkt={c.kkt_residual:.2g}"
             )
         )
         return (

@@ -25,7 +25,7 @@ import numpy as np
 from mvreg.config.solve import SolveConfig, solve_config
 from mvreg.errors import ConfigError, IllPosedError
 from mvreg.solver.base import SOLVERS, IterationRecord, SolverContext, SolverRun, Spectrum
-from mvreg.solver.certificate import certify
+from mvreg.solver.certificate import certify, inertia_shift
 from mvreg.solver.operator import RegOperator
 from mvreg.solver.polish import polish
 from mvreg.solver.problem import PatchProblem
@@ -150,7 +150,10 @@ def _polish_and_certify(run: SolverRun, ctx: SolverContext, timings: dict):
         timings["polish"] = time.perf_counter() - t0
         run.stats.update(newton_steps=pst.newton_steps, newton_cg_steps=pst.cg_steps)
     t0 = time.perf_counter()
-    cert = certify(op, R, lam_max, ctx.dense, ctx.gap_tol, ctx.seed) if ctx.certify else None
+    tau = inertia_shift(ctx.spectrum.smallest, op.d)
+    cert = None
+    if ctx.certify:
+        cert = certify(op, R, lam_max, ctx.dense, ctx.gap_tol, ctx.seed, tau=tau)
     timings["certificate"] = time.perf_counter() - t0
     return R, cert
 

@@ -111,3 +111,22 @@ def test_rho_policy_balancing_and_stall_rules():
     rhos = [t.update(k, 1.0, 1.0) for k in range(1, 12)]  # a stalled primal residual
     assert rhos[-1] == pytest.approx(0.3) and min(rhos) == pytest.approx(0.1)
     assert all("stalled" in c["reason"] for c in t.changes)
+
+
+def test_staircase_descent_reaches_the_optimum_the_power_method_did_not():
+    """M = 300 at 20% noise: the polished start has strong negative curvature. The lifted
+    descent with Barzilai-Borwein steps reaches the certified optimum in one staircase step.
+    The generalized power method it replaced (step 1 / lambda_max) ran out of its 300 steps
+    each time: it needed three staircase steps (282ce36), or, with C products that differ
+    by ~1e-14 (Laplacian solves without PARDISO's refinement), ended uncertified after
+    REG-ADMM's 500 iterations at a 2.7% higher cost."""
+    problem, truth = make_problem(300, d=3, noise=0.2, seed=3)
+    res = solve(problem)
+    steps = res.stats["staircase"]
+    assert res.certified and res.iterations == 0
+    assert len(steps) == 1 and steps[0]["certified"]
+    assert steps[0]["min_eigenvalue"] < -0.1
+    assert res.objective < 0.99 * steps[0]["from_objective"]
+    assert res.certificate.relative_gap <= 1e-6
+    err = rotation_errors_deg(res.rotations, truth.rotations)
+    assert np.median(err) < 10.0

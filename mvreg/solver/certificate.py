@@ -59,6 +59,10 @@ class Certificate:
     eigen_method: "eigensolver" (min_eigenvalue is the computed eigenvalue), "dense", or
         "inertia": min_eigenvalue is a proven lower bound of mu from the inertia of one
         factorization of C + Lambda - tau I (``_inertia_bound``), not an estimate of it.
+    bound_source: where lower_bound (and suboptimality_bound, relative_gap) come from:
+        "solution" (lambda_min(C + Lambda) at the solution, above) or "lifted" (the dual
+        bound at a lifted point of the Riemannian staircase, staircase.lifted_lower_bound,
+        tighter where the relaxation is not tight; only for uncertified solutions).
     """
 
     certified: bool
@@ -72,6 +76,7 @@ class Certificate:
     tolerance: float
     lower_bound: float = float("nan")
     eigen_method: str = "eigensolver"
+    bound_source: str = "solution"
 
     def to_dict(self) -> dict:
         return {k: (bool(v) if isinstance(v, np.bool_) else v) for k, v in asdict(self).items()}

@@ -18,7 +18,12 @@ import numpy as np
 from mvreg.solver.base import SolverContext
 from mvreg.solver.certificate import EIG_TOL, certify, inertia_shift
 from mvreg.solver.polish import KKT_TOL, polish, repolish
-from mvreg.solver.staircase import escape
+from mvreg.solver.staircase import escape, lifted_lower_bound
+
+LIFTED_GAP_STOP = 1e-4
+"""When the lower bound from a lifted staircase point leaves a relative gap below this, the
+best point cannot be bettered by more than that fraction of its cost: REG-ADMM's
+iterations are skipped (``BestPoint.bounded``)."""
 
 SHORT_OF_KKT = 1e-8
 """A polished point with a larger KKT residual (polish.PolishStats.kkt_residual) is
@@ -44,6 +49,9 @@ class BestPoint:
         self.t_cert = 0.0
         self.t_escape = 0.0
         self.escapes: list[dict] = []
+        # The best lower bound on the optimum from a lifted point (normalized units).
+        self.lifted_bound = -np.inf
+        self._lifted_cost = np.inf
 
     @property
     def certified(self) -> bool:
@@ -113,6 +121,29 @@ class BestPoint:
             inv = self.polish.inverse if self.polish is not None else None
             self.cert = self._certify(self.R, inv)
 
+    @property
+    def bounded(self) -> bool:
+        """Whether a lifted lower bound leaves a relative gap below LIFTED_GAP_STOP."""
+        return self.cert is not None and self._lifted_gap() <= LIFTED_GAP_STOP
+
+    def _lifted_gap(self) -> float:
+        f = self.cert.objective / self.ctx.operator.norm.scale**2
+        return (f - self.lifted_bound) / f if f > 0 else np.inf
+
+    def apply_lifted_bound(self) -> None:
+        """Where the best point is not certified, a lifted point's lower bound that beats the
+        certificate's own replaces it (``bound_source`` "lifted")."""
+        c = self.cert
+        if c is None or c.certified or not np.isfinite(self.lifted_bound):
+            return
+        lb = self.lifted_bound * self.ctx.operator.norm.scale**2
+        if lb <= c.lower_bound:
+            return
+        c.lower_bound = lb
+        c.suboptimality_bound = max(0.0, c.objective - lb)
+        c.relative_gap = c.suboptimality_bound / max(c.objective, 1e-300)
+        c.bound_source = "lifted"
+
     def escape(self, rounds: int) -> bool:
         """Up to ``rounds`` staircase steps from the best point while its certificate shows
         negative curvature; each result is polished, certified and kept when cheaper.
@@ -127,6 +158,16 @@ class BestPoint:
             rec = {"min_eigenvalue": st.min_eigenvalue, "step": st.step}
             rec.update(lifted_iterations=st.iterations, from_objective=self.cert.objective)
             self.escapes.append(rec)
+            # The bound at a lifted point costs an eigensolve: only where the lifted cost is
+            # the lowest so far (the bound is f(Y) + lambda_min n, lambda_min ~ 0 near the
+            # lifted optimum).
+            if st.lifted is not None and st.lifted_cost < self._lifted_cost:
+                self._lifted_cost = st.lifted_cost
+                t0 = time.perf_counter()
+                lb = lifted_lower_bound(c.operator, st.lifted, self.lam_max, c.seed + r)[0]
+                self.t_escape += time.perf_counter() - t0
+                self.lifted_bound = max(self.lifted_bound, lb)
+                rec["lifted_lower_bound"] = lb * c.operator.norm.scale**2
             if R2 is None:
                 break
             Rp, pst = self._repolish(*self._polish(R2))

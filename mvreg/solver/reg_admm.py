@@ -231,8 +231,13 @@ def run(ctx: SolverContext) -> SolverRun:
     # Checkpoint 0: the start itself. When the certificate rejects it with a direction of
     # negative curvature, staircase steps first; REG-ADMM iterates only when neither the
     # start nor an escape from it is certified (from the cheapest point found).
+    # A lifted point's lower bound may show the uncertified start within LIFTED_GAP_STOP of
+    # the optimum (a relaxation that is not tight): then there is nothing to iterate for.
+    bounded = False
     if o.polish and (best.check(0, _rounded(state, ctx)) or best.escape(o.staircase_rounds)):
         admm = AdmmRun(state=state)
+    elif o.polish and best.bounded:
+        admm, bounded = AdmmRun(state=state), True
     else:
         if best.escapes:
             state = state_from_rotations(best.R, rho=rho0)
@@ -253,14 +258,16 @@ def run(ctx: SolverContext) -> SolverRun:
         )
     t_iter = time.perf_counter() - t0 - best.t_polish - best.t_cert - best.t_escape
     certified_early = best.certified
-    if not certified_early:
+    if not certified_early and not bounded:
         best.finish(_rounded(admm.state, ctx), admm.iterations, o.polish)
         if o.polish:
             best.escape(o.staircase_rounds)
+    best.apply_lifted_bound()
     pst = best.polish
     if pst is not None:
         pst.inverse = None  # free the factorization
     stopped = "residuals" if admm.residuals_converged else "max_iter"
+    stopped = "lifted bound" if bounded else stopped
     return SolverRun(
         rotations=best.R,
         iterations=admm.iterations,

@@ -40,7 +40,7 @@ from mvreg.solver.certificate import multipliers
 class EscapeStats:
     min_eigenvalue: float  # mu / lambda_max(C) at the start (< 0 when an escape was taken)
     step: float  # the accepted step along the lifted direction
-    iterations: int  # lifted power iterations
+    iterations: int  # steps of the lifted descent
     lifted_cost: float  # Tr(Y^T C Y) of the lifted point (normalized units)
     start_cost: float  # Tr(X^T C X) at the start (normalized units)
     lifted: np.ndarray | None = field(default=None, repr=False)  # the lifted point Y (n, d+1)

@@ -80,13 +80,20 @@ def most_negative_direction(op, X: np.ndarray, lam: np.ndarray, lam_max: float, 
     return float(w[i]), v / np.linalg.norm(v)
 
 
+def _row_multipliers(Y: np.ndarray, CY: np.ndarray, d: int) -> np.ndarray:
+    """(M, d, d) blocks sym((C Y)_i Y_i^T) for Y (n, p) with orthonormal block rows: minus
+    the multipliers Lambda(Y) of the lifted problem (for p = d, certificate.multipliers)."""
+    p = Y.shape[1]
+    m = CY.reshape(-1, d, p) @ Y.reshape(-1, d, p).transpose(0, 2, 1)
+    return 0.5 * (m + m.transpose(0, 2, 1))
+
+
 def _riemannian_gradient(Y: np.ndarray, CY: np.ndarray, d: int) -> np.ndarray:
     """Gradient of Tr(Y^T C Y) projected onto the tangent space of blocks with orthonormal
     rows: G_i - sym(G_i Y_i^T) Y_i with G = 2 C Y."""
     n, p = Y.shape
-    yb, gb = Y.reshape(-1, d, p), (2.0 * CY).reshape(-1, d, p)
-    s = gb @ yb.transpose(0, 2, 1)
-    return (gb - 0.5 * (s + s.transpose(0, 2, 1)) @ yb).reshape(n, p)
+    sym_b = _row_multipliers(Y, CY, d)
+    return (2.0 * (CY.reshape(-1, d, p) - sym_b @ Y.reshape(-1, d, p))).reshape(n, p)
 
 
 # Nonmonotone line search: the cost must fall below the largest of the last NONMONOTONE
@@ -141,11 +148,11 @@ def lifted_descent(op, Y: np.ndarray, d: int, lam_max: float, max_iter: int, tol
             alpha = min(4.0 * a, MAX_STEP / lam_max)
         Y, cy, f, g = y_new, cy_new, f_new, g_new
         costs.append(f)
-        bests.append(min(bests[-1], f))
-        if it >= STALL_WINDOW and bests[-STALL_WINDOW - 1] - bests[-1] <= tol * abs(bests[-1]):
-            break
         if f <= f_best:
             y_best, f_best = Y, f
+        bests.append(f_best)
+        if it >= STALL_WINDOW and bests[-STALL_WINDOW - 1] - f_best <= tol * abs(f_best):
+            break
     # A nonmonotone run can end above the best point it passed: return that one.
     return y_best, f_best, it
 
@@ -206,11 +213,8 @@ def lifted_lower_bound(op, Y: np.ndarray, lam_max: float, seed: int = 0, maxiter
     from mvreg.solver.spectral import block_jacobi
 
     d, n = op.d, op.n
-    p = Y.shape[1]
     cy = op.matvec(Y)
-    yb, cb = Y.reshape(-1, d, p), cy.reshape(-1, d, p)
-    m = cb @ yb.transpose(0, 2, 1)
-    lam = -0.5 * (m + m.transpose(0, 2, 1))
+    lam = -_row_multipliers(Y, cy, d)
     f_y = float(np.sum(Y * cy))
 
     def apply(v):
